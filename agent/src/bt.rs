@@ -1,0 +1,316 @@
+//! Behaviour-tree engine with py_trees 2.1.6 semantics (REFERENCE.md §2.1).
+//!
+//! Nodes live in an arena in pre-order, so a node's subtree is the contiguous range
+//! `i..end[i]` and "reset the whole subtree" is a slice fill. Statuses persist between
+//! ticks exactly as in py_trees, including the stale statuses a Selector leaves behind
+//! when its first child succeeds — fitness reads them (§6.5).
+use crate::ge::{CompositeKind, PNode};
+use crate::leaves::{Leaf, LeafError, LeafSpec};
+use crate::view::View;
+use rand::Rng;
+use std::fmt::Write;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Status {
+    Invalid,
+    Success,
+    Failure,
+}
+
+/// Grammar tag a leaf came from; fitness and GeneDict rules select nodes by it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Tag {
+    PostCnd,
+    PreCnd,
+    Cnstr,
+    Act,
+    Other(String),
+}
+
+impl Tag {
+    fn from_str(s: &str) -> Tag {
+        match s {
+            "PostCnd" => Tag::PostCnd,
+            "PreCnd" => Tag::PreCnd,
+            "Cnstr" => Tag::Cnstr,
+            "Act" | "act" => Tag::Act,
+            other => Tag::Other(other.to_string()),
+        }
+    }
+    fn label(&self) -> &str {
+        match self {
+            Tag::PostCnd => "PostCnd",
+            Tag::PreCnd => "PreCnd",
+            Tag::Cnstr => "Cnstr",
+            Tag::Act => "Act",
+            Tag::Other(s) => s,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum Kind {
+    Sequence,
+    Selector,
+    Parallel,
+    Inverter,
+    Leaf(Leaf, Tag),
+}
+
+#[derive(Clone, Debug)]
+struct Node {
+    kind: Kind,
+    /// Children indices (for Inverter: exactly one).
+    children: Vec<u32>,
+    /// One past the last node of this subtree.
+    end: u32,
+}
+
+/// Why a phenotype cannot become a tree.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum BuildError {
+    #[error(transparent)]
+    Leaf(#[from] LeafError),
+    #[error("composite node has no children where one is required")]
+    Empty,
+}
+
+/// A behaviour tree plus its node statuses.
+#[derive(Clone, Debug)]
+pub struct Bt {
+    nodes: Vec<Node>,
+    status: Vec<Status>,
+}
+
+impl Bt {
+    /// Build from a parsed phenotype tree (the construction rule of §4.3 is applied by
+    /// the phenotype parser). Leaf texts follow §4.2.
+    pub fn from_pnode(root: &PNode) -> Result<Bt, BuildError> {
+        let mut bt = Bt { nodes: Vec::new(), status: Vec::new() };
+        bt.add(root)?;
+        bt.status = vec![Status::Invalid; bt.nodes.len()];
+        Ok(bt)
+    }
+
+    fn push(&mut self, kind: Kind) -> u32 {
+        self.nodes.push(Node { kind, children: Vec::new(), end: 0 });
+        (self.nodes.len() - 1) as u32
+    }
+
+    fn add(&mut self, p: &PNode) -> Result<u32, BuildError> {
+        let i = match p {
+            PNode::Composite { kind, children } => {
+                let k = match kind {
+                    CompositeKind::Sequence => Kind::Sequence,
+                    CompositeKind::Selector => Kind::Selector,
+                    CompositeKind::Parallel => Kind::Parallel,
+                };
+                let i = self.push(k);
+                for c in children {
+                    let ci = self.add(c)?;
+                    self.nodes[i as usize].children.push(ci);
+                }
+                i
+            }
+            PNode::Leaf { text, tag } => {
+                let spec = LeafSpec::parse(text.trim())?;
+                let leaf = Kind::Leaf(spec.leaf, Tag::from_str(tag));
+                if spec.invert {
+                    let i = self.push(Kind::Inverter);
+                    let c = self.push(leaf);
+                    self.nodes[c as usize].end = c + 1;
+                    self.nodes[i as usize].children.push(c);
+                    i
+                } else {
+                    self.push(leaf)
+                }
+            }
+        };
+        self.nodes[i as usize].end = self.nodes.len() as u32;
+        Ok(i)
+    }
+
+    /// Compose several trees under one Parallel root (the fixed-agent "Parallel
+    /// strategy", REFERENCE §6.8).
+    pub fn parallel(trees: &[Bt]) -> Bt {
+        let mut bt = Bt { nodes: vec![Node { kind: Kind::Parallel, children: Vec::new(), end: 0 }], status: Vec::new() };
+        for t in trees {
+            let off = bt.nodes.len() as u32;
+            bt.nodes[0].children.push(off);
+            for n in &t.nodes {
+                bt.nodes.push(Node {
+                    kind: n.kind.clone(),
+                    children: n.children.iter().map(|c| c + off).collect(),
+                    end: n.end + off,
+                });
+            }
+        }
+        bt.nodes[0].end = bt.nodes.len() as u32;
+        bt.status = vec![Status::Invalid; bt.nodes.len()];
+        bt
+    }
+
+    pub fn len(&self) -> usize {
+        self.nodes.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// Tick the root once.
+    pub fn tick<R: Rng>(&mut self, view: &mut View, rng: &mut R) -> Status {
+        if self.nodes.is_empty() {
+            return Status::Failure;
+        }
+        self.tick_node(0, view, rng)
+    }
+
+    fn reset(&mut self, i: u32) {
+        let end = self.nodes[i as usize].end as usize;
+        self.status[i as usize..end].fill(Status::Invalid);
+    }
+
+    fn tick_node<R: Rng>(&mut self, i: u32, view: &mut View, rng: &mut R) -> Status {
+        let iu = i as usize;
+        let st = match &self.nodes[iu].kind {
+            Kind::Leaf(leaf, _) => {
+                if leaf.tick(view, rng) {
+                    Status::Success
+                } else {
+                    Status::Failure
+                }
+            }
+            Kind::Inverter => {
+                let c = self.nodes[iu].children[0];
+                match self.tick_node(c, view, rng) {
+                    Status::Success => Status::Failure,
+                    Status::Failure => Status::Success,
+                    s => s,
+                }
+            }
+            Kind::Sequence => {
+                let n = self.nodes[iu].children.len();
+                for k in 0..n {
+                    let c = self.nodes[iu].children[k];
+                    if self.status[c as usize] != Status::Invalid {
+                        self.reset(c);
+                    }
+                }
+                let mut st = Status::Success;
+                for k in 0..n {
+                    let c = self.nodes[iu].children[k];
+                    let s = self.tick_node(c, view, rng);
+                    if s != Status::Success {
+                        st = s;
+                        break;
+                    }
+                }
+                st
+            }
+            Kind::Selector => {
+                let n = self.nodes[iu].children.len();
+                let mut st = Status::Failure;
+                for k in 0..n {
+                    let c = self.nodes[iu].children[k];
+                    if self.tick_node(c, view, rng) == Status::Success {
+                        st = Status::Success;
+                        // Interrupting a lower-priority child: invalidate those after
+                        // the winner, unless the winner is the first child (py_trees
+                        // only resets when the running child changed).
+                        if k > 0 {
+                            for j in k + 1..n {
+                                let c2 = self.nodes[iu].children[j];
+                                if self.status[c2 as usize] != Status::Invalid {
+                                    self.reset(c2);
+                                }
+                            }
+                        }
+                        break;
+                    }
+                }
+                st
+            }
+            Kind::Parallel => {
+                let n = self.nodes[iu].children.len();
+                for k in 0..n {
+                    let c = self.nodes[iu].children[k];
+                    self.reset(c);
+                }
+                let mut st = Status::Success;
+                for k in 0..n {
+                    let c = self.nodes[iu].children[k];
+                    if self.tick_node(c, view, rng) == Status::Failure {
+                        st = Status::Failure;
+                    }
+                }
+                st
+            }
+        };
+        self.status[iu] = st;
+        st
+    }
+
+    /// BT feedback of the reference code: the number of Selector nodes whose status is
+    /// SUCCESS after the tick (stale statuses included).
+    pub fn successful_selectors(&self) -> u32 {
+        self.nodes
+            .iter()
+            .zip(&self.status)
+            .filter(|(n, s)| n.kind == Kind::Selector && **s == Status::Success)
+            .count() as u32
+    }
+
+    /// BT feedback as the paper defines it: +1 per successful post-condition, −2 per
+    /// failed constraint, +1 if the root is a Selector that succeeded.
+    pub fn paper_feedback(&self) -> f64 {
+        let mut b = 0.0;
+        for (n, s) in self.nodes.iter().zip(&self.status) {
+            match (&n.kind, s) {
+                (Kind::Leaf(_, Tag::PostCnd), Status::Success) => b += 1.0,
+                (Kind::Leaf(_, Tag::Cnstr), Status::Failure) => b -= 2.0,
+                _ => {}
+            }
+        }
+        if matches!(self.nodes.first(), Some(n) if n.kind == Kind::Selector) && self.status[0] == Status::Success {
+            b += 1.0;
+        }
+        b
+    }
+
+    /// The `[Act]` leaves and their statuses.
+    pub fn actions(&self) -> impl Iterator<Item = (&Leaf, Status)> {
+        self.nodes.iter().zip(&self.status).filter_map(|(n, s)| match &n.kind {
+            Kind::Leaf(l, Tag::Act) => Some((l, *s)),
+            _ => None,
+        })
+    }
+
+    /// Status of the root after the last tick.
+    pub fn root_status(&self) -> Status {
+        self.status.first().copied().unwrap_or(Status::Invalid)
+    }
+
+    /// Indented text listing in the style of REFERENCE §4.5.
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        if !self.nodes.is_empty() {
+            self.render_node(0, 0, &mut out);
+        }
+        out
+    }
+
+    fn render_node(&self, i: u32, depth: usize, out: &mut String) {
+        let n = &self.nodes[i as usize];
+        let pad = "  ".repeat(depth);
+        let _ = match &n.kind {
+            Kind::Sequence => writeln!(out, "{pad}Sequence"),
+            Kind::Selector => writeln!(out, "{pad}Selector"),
+            Kind::Parallel => writeln!(out, "{pad}Parallel"),
+            Kind::Inverter => writeln!(out, "{pad}Inverter"),
+            Kind::Leaf(l, t) => writeln!(out, "{pad}{} ({})", l.name(), t.label()),
+        };
+        for &c in &n.children {
+            self.render_node(c, depth + 1, out);
+        }
+    }
+}

@@ -1,0 +1,382 @@
+//! The BeTr-GEESE learner: one agent's per-step sense–act–update loop (REFERENCE.md §6).
+//!
+//! The learner is sans-IO. A step is two calls:
+//! 1. [`Learner::begin_step`] with the percept of the agent's cell returns the gene to
+//!    offer to cell-mates (lateral transfer, DESIGN.md §2 step 2);
+//! 2. [`Learner::finish_step`] with the genes that arrived ticks the tree, updates the
+//!    fitness, runs the IP filter and the genetic step, and returns the intent.
+//!
+//! The order inside `finish_step` is the reference code's (§6.2): tick, visited cells,
+//! fitness, lateral transfer into the pool, genetic operators, update. Genes are copied,
+//! never shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires.
+use crate::bt::{BuildError, Bt};
+use crate::ge::{self, GeParams, Grammar, Individual};
+use crate::view::View;
+use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
+use geese_proto::{
+    AgentId, AgentStats, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept, Regime,
+};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// Which fitness formula (REFERENCE §6.5).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum FitnessVariant {
+    /// 0.1·R + E + B, B = successful selectors (the reference code).
+    #[default]
+    Code,
+    /// 0.1·A(t−1) + E + B, A(0) = D, B = +1 post-condition / −2 constraint / +1 root.
+    Paper,
+}
+
+/// Learner parameters; defaults are the paper's Sec.-5 settings (REFERENCE §5.1).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnerConfig {
+    /// Storage threshold ST.
+    pub st: usize,
+    /// Stagnation age (`gstep`): steps without a gene change before the rule may fire.
+    pub stagnation_age: u32,
+    /// Stagnation exploration floor (`expp`); 0 disables the rule.
+    pub stagnation_explore: u32,
+    /// Fresh individuals injected by the stagnation rule.
+    pub stagnation_individuals: usize,
+    /// Individuals created at start-up (the first one is used).
+    pub initial_individuals: usize,
+    /// Carry-over factor (1 − β).
+    pub carry_over: f64,
+    pub fitness: FitnessVariant,
+    pub ge: GeParams,
+}
+
+impl Default for LearnerConfig {
+    fn default() -> Self {
+        LearnerConfig {
+            st: 7,
+            stagnation_age: 200,
+            stagnation_explore: 2,
+            stagnation_individuals: 10,
+            initial_individuals: 3,
+            carry_over: 0.1,
+            fitness: FitnessVariant::Code,
+            ge: GeParams::default(),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum LearnerConfigError {
+    #[error("learner.{field}: {reason}")]
+    Invalid { field: &'static str, reason: String },
+}
+
+impl LearnerConfig {
+    pub fn validate(&self) -> Result<(), LearnerConfigError> {
+        let bad = |field, reason: &str| Err(LearnerConfigError::Invalid { field, reason: reason.into() });
+        if self.st < 4 {
+            return bad("st", "the storage threshold must be at least 4 (a genetic step needs two parents)");
+        }
+        if self.initial_individuals == 0 {
+            return bad("initial_individuals", "must be at least 1");
+        }
+        if !(0.0..=1.0).contains(&self.carry_over) {
+            return bad("carry_over", "must lie in [0, 1]");
+        }
+        if self.stagnation_explore > 0 && self.stagnation_individuals < 4 {
+            return bad("stagnation_individuals", "must be at least 4 when the stagnation rule is on");
+        }
+        self.ge.validate().map_err(|e| LearnerConfigError::Invalid { field: "ge", reason: e.to_string() })
+    }
+}
+
+/// Set of visited cells (a bitset with a count).
+#[derive(Clone, Debug)]
+struct CellSet {
+    bits: Vec<u64>,
+    set: Vec<u32>,
+}
+
+impl CellSet {
+    fn new(cells: usize) -> Self {
+        CellSet { bits: vec![0; cells.div_ceil(64)], set: Vec::new() }
+    }
+    fn insert(&mut self, c: u32) {
+        let (w, b) = ((c / 64) as usize, c % 64);
+        if let Some(word) = self.bits.get_mut(w) {
+            if *word & (1 << b) == 0 {
+                *word |= 1 << b;
+                self.set.push(c);
+            }
+        }
+    }
+    fn len(&self) -> usize {
+        self.set.len()
+    }
+    fn clear(&mut self) {
+        for &c in &self.set {
+            self.bits[(c / 64) as usize] = 0;
+        }
+        self.set.clear();
+    }
+}
+
+/// Digest of a genome, for parity checks across transports.
+pub fn genome_digest(genome: &[u32]) -> u64 {
+    let mut h = Fnv64::default();
+    for &c in genome {
+        h.write_u32(c);
+    }
+    h.finish()
+}
+
+/// Build the behaviour tree of a valid individual.
+pub fn build_tree(ind: &Individual) -> Result<Bt, BuildError> {
+    match &ind.phenotype {
+        Some(p) => {
+            let root = ge::parse_phenotype(p).map_err(|_| BuildError::Empty)?;
+            Bt::from_pnode(&root)
+        }
+        None => Err(BuildError::Empty),
+    }
+}
+
+/// One BeTr-GEESE agent.
+pub struct Learner {
+    id: AgentId,
+    cfg: Arc<LearnerConfig>,
+    grammar: Arc<Grammar>,
+    view: View,
+    gene: Individual,
+    gene_digest: u64,
+    tree: Bt,
+    pool: Vec<Individual>,
+    /// Carry-over value R: the previous gene's fitness when it was replaced.
+    carry: f64,
+    age: u32,
+    visited: CellSet,
+    rng_bt: ChaCha8Rng,
+    rng_ge: ChaCha8Rng,
+    rng_ip: ChaCha8Rng,
+    rng_loss: ChaCha8Rng,
+    step: u64,
+    regime: Regime,
+    expected: Vec<AgentId>,
+    have_percept: bool,
+}
+
+impl Learner {
+    /// A fresh learner that knows the hub, with its first random gene.
+    pub fn new(
+        id: AgentId,
+        cfg: Arc<LearnerConfig>,
+        grammar: Arc<Grammar>,
+        geom: Geometry,
+        hub: ObjectInfo,
+        run_seed: u64,
+    ) -> Learner {
+        let rng = |p| ChaCha8Rng::seed_from_u64(derive(run_seed, Owner::Agent(id), p));
+        let mut rng_ge = rng(Purpose::Evolution);
+        let mut view = View::new(geom, id);
+        view.memory.insert(hub);
+        // Three individuals are created (consuming their draws); the first is used.
+        let mut first = None;
+        for _ in 0..cfg.initial_individuals.max(1) {
+            let ind = ge::random_individual(&grammar, &cfg.ge, &mut rng_ge);
+            first.get_or_insert(ind);
+        }
+        let mut gene = first.unwrap_or_else(|| ge::random_individual(&grammar, &cfg.ge, &mut rng_ge));
+        let d = gene.fitness;
+        gene.fitness = match cfg.fitness {
+            FitnessVariant::Code => 0.0,
+            FitnessVariant::Paper => d,
+        };
+        let tree = build_tree(&gene).unwrap_or_else(|_| Bt::parallel(&[]));
+        Learner {
+            id,
+            gene_digest: genome_digest(&gene.genome),
+            gene,
+            tree,
+            pool: Vec::new(),
+            carry: 0.0,
+            age: 0,
+            visited: CellSet::new(geom.cell_count()),
+            rng_bt: rng(Purpose::Behaviour),
+            rng_ge,
+            rng_ip: rng(Purpose::Interaction),
+            rng_loss: rng(Purpose::Loss),
+            step: 0,
+            regime: Regime::default(),
+            expected: Vec::new(),
+            have_percept: false,
+            view,
+            cfg,
+            grammar,
+        }
+    }
+
+    pub fn id(&self) -> AgentId {
+        self.id
+    }
+    pub fn gene(&self) -> &Individual {
+        &self.gene
+    }
+    pub fn tree(&self) -> &Bt {
+        &self.tree
+    }
+    pub fn fitness(&self) -> f64 {
+        self.gene.fitness
+    }
+
+    /// Phase 1: read the percept of the agent's cell; return the gene to publish to the
+    /// cell (none while lateral transfer is off or the agent is not in the percept).
+    pub fn begin_step(&mut self, percept: &Percept) -> Option<GeneMsg> {
+        self.step = percept.step;
+        self.regime = percept.regime;
+        self.have_percept = self.view.load(percept);
+        self.expected.clear();
+        if !self.have_percept || !self.regime.lateral_transfer {
+            return None;
+        }
+        self.expected.extend(percept.agents.iter().filter(|a| a.id != self.id && a.live && a.learning).map(|a| a.id));
+        Some(GeneMsg { step: self.step, from: self.id, genome: self.gene.genome.clone(), fitness: self.gene.fitness })
+    }
+
+    /// Cell-mates whose genes this step should bring (sorted by id).
+    pub fn expected_mates(&self) -> &[AgentId] {
+        &self.expected
+    }
+
+    /// Phase 2: act, learn, and return the intent. `genes` are the gene messages that
+    /// arrived from the cell (any order; foreign, stale, duplicate and own messages are
+    /// ignored). Without a percept the agent idles: an empty intent.
+    pub fn finish_step(&mut self, genes: &[GeneMsg]) -> Intent {
+        let mut stats = AgentStats::default();
+        if !self.have_percept {
+            return Intent { step: self.step, agent: self.id, heading: self.view.heading, ops: Vec::new(), stats };
+        }
+        // 1–2. age, act.
+        self.age += 1;
+        self.tree.tick(&mut self.view, &mut self.rng_bt);
+        // 3. visited cells (the cell after this tick's own moves), E.
+        self.visited.insert(self.view.cell());
+        let explore = self.visited.len().saturating_sub(1) as f64;
+        // 4. fitness.
+        self.gene.fitness = match self.cfg.fitness {
+            FitnessVariant::Code => {
+                self.cfg.carry_over * self.carry + explore + self.tree.successful_selectors() as f64
+            }
+            FitnessVariant::Paper => {
+                self.cfg.carry_over * self.gene.fitness + explore + self.tree.paper_feedback()
+            }
+        };
+        // 6. sense: lateral transfer through the IP filter.
+        if self.regime.lateral_transfer {
+            stats.lt_rate = self.lateral_transfer(genes, &mut stats.genes_lost);
+        }
+        // 7–8. genetic operators and update.
+        if self.pool.len() >= self.cfg.st {
+            self.evolve();
+            stats.genetic = GeneticTrigger::Storage;
+        } else if self.cfg.stagnation_explore > 0
+            && self.age > self.cfg.stagnation_age
+            && (explore as u32) < self.cfg.stagnation_explore
+        {
+            for _ in 0..self.cfg.stagnation_individuals {
+                let ind = ge::random_individual(&self.grammar, &self.cfg.ge, &mut self.rng_ge);
+                self.pool.push(ind);
+            }
+            self.evolve();
+            stats.genetic = GeneticTrigger::Stagnation;
+        }
+        stats.fitness = self.gene.fitness;
+        stats.gene_digest = self.gene_digest;
+        Intent {
+            step: self.step,
+            agent: self.id,
+            heading: self.view.heading,
+            ops: std::mem::take(&mut self.view.ops),
+            stats,
+        }
+    }
+
+    /// Candidates = this agent plus the cell-mates whose genes arrived, in id order; each
+    /// kept with probability IP; if more than one survives all survivors' genes go to the
+    /// pool. Returns the number of survivors.
+    fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32) -> u32 {
+        let mut arrived: Vec<&GeneMsg> = Vec::with_capacity(self.expected.len());
+        for &mate in &self.expected {
+            let msg = genes.iter().find(|g| g.from == mate && g.step == self.step);
+            match msg {
+                Some(g) if g.genome.len() <= self.cfg.ge.max_genome_length && g.fitness.is_finite() => {
+                    // Injected receiver-side loss.
+                    if self.regime.gene_loss > 0.0 && self.rng_loss.random::<f64>() < self.regime.gene_loss {
+                        *lost += 1;
+                    } else {
+                        arrived.push(g);
+                    }
+                }
+                Some(_) | None => *lost += 1,
+            }
+        }
+        // Candidates in id order, self included.
+        let mut survivors: Vec<Option<&GeneMsg>> = Vec::new();
+        let mut self_done = false;
+        let ip = self.regime.ip;
+        for g in arrived.iter().copied() {
+            if !self_done && self.id < g.from {
+                self_done = true;
+                if self.rng_ip.random::<f64>() < ip {
+                    survivors.push(None);
+                }
+            }
+            if self.rng_ip.random::<f64>() < ip {
+                survivors.push(Some(g));
+            }
+        }
+        if !self_done && self.rng_ip.random::<f64>() < ip {
+            survivors.push(None);
+        }
+        if survivors.len() > 1 {
+            for s in &survivors {
+                let ind = match s {
+                    None => self.gene.clone(),
+                    Some(g) => {
+                        let mut ind = ge::evaluate(&self.grammar, g.genome.clone(), &self.cfg.ge);
+                        if !ind.valid() {
+                            *lost += 1;
+                            continue;
+                        }
+                        ind.fitness = g.fitness;
+                        ind
+                    }
+                };
+                self.pool.push(ind);
+            }
+        }
+        survivors.len() as u32
+    }
+
+    /// Genetic step on the pool, then adopt the winner (§5.6, §6.2 step 8).
+    fn evolve(&mut self) {
+        let winner = ge::genetic_step(&self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge);
+        self.pool.clear();
+        let Ok(mut winner) = winner else { return };
+        let tree = match build_tree(&winner) {
+            Ok(t) => t,
+            Err(_) => return,
+        };
+        self.carry = self.gene.fitness;
+        winner.fitness = match self.cfg.fitness {
+            FitnessVariant::Code => 0.0,
+            FitnessVariant::Paper => winner.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0),
+        };
+        self.gene_digest = genome_digest(&winner.genome);
+        self.gene = winner;
+        self.tree = tree;
+        self.visited.clear();
+        self.age = 0;
+    }
+}

@@ -1,0 +1,18 @@
+//! The agent side of GEESE: grammatical evolution, behaviour trees and learners.
+//!
+//! # Layout
+//! - [`ge`]: BNF grammars, genotype → phenotype mapping, diversity fitness and the
+//!   GE operators (PonyGE2 semantics, REFERENCE.md §3–5).
+//! - [`grammars`]: the grammar files shipped with GEESE.
+//! - [`bt`]: the behaviour-tree engine (py_trees semantics, stale statuses included).
+//! - [`leaves`]: conditions, primitive and composite actions.
+//! - [`view`]: an agent's local world model, blackboard and static memory for one tick.
+//! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness).
+pub mod bt;
+pub mod ge;
+pub mod grammars;
+pub mod leaves;
+pub mod learner;
+pub mod view;
+
+pub use learner::{FitnessVariant, Learner, LearnerConfig};

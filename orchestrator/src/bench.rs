@@ -1,0 +1,37 @@
+//! Throughput benchmark of the simulation core: learning agent-steps per second on one
+//! thread. A benchmark prints figures; it is not a test and asserts nothing.
+use crate::config::RunConfig;
+use crate::trial::Trial;
+use std::time::Instant;
+
+/// Result of one benchmark run.
+#[derive(Debug, Clone)]
+pub struct BenchResult {
+    pub agents: u32,
+    pub steps: u64,
+    pub seconds: f64,
+    pub agent_steps_per_sec: f64,
+    pub genetic_steps: u64,
+    pub final_task_pct: f64,
+}
+
+/// Time `steps` lock-step steps of the configured trial on the calling thread.
+pub fn bench_core(cfg: RunConfig) -> anyhow::Result<BenchResult> {
+    let steps = cfg.steps;
+    let agents = cfg.world.agents;
+    let spec = cfg.validate()?;
+    let mut t = Trial::new(&spec)?;
+    let start = Instant::now();
+    for _ in 0..steps {
+        t.step();
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    Ok(BenchResult {
+        agents,
+        steps,
+        seconds,
+        agent_steps_per_sec: (agents as f64 * steps as f64) / seconds,
+        genetic_steps: t.summary().genetic_steps + t.summary().stagnation_steps,
+        final_task_pct: t.summary().final_task_pct,
+    })
+}

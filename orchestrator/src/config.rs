@@ -1,0 +1,189 @@
+//! Run configuration: a raw TOML/CLI form, validated into a typed [`RunSpec`].
+//!
+//! Every field defaults to the paper's setting (REFERENCE.md §5.1): 100 agents, 12,000
+//! steps, IP 0.85, ST 7, GS 10. Unknown keys are errors that name the key (serde's
+//! `deny_unknown_fields`); out-of-range values are errors that name the field.
+use geese_agent::ge::Grammar;
+use geese_agent::{grammars, LearnerConfig};
+use geese_proto::{Perturbation, Regime};
+use geese_world::{Task, WorldConfig};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// A perturbation at a given step.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scheduled {
+    /// Applied right after this step is resolved (the reference code's hook timing).
+    pub at: u64,
+    pub change: Perturbation,
+}
+
+/// The raw configuration, as written in a TOML file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    pub steps: u64,
+    pub seed: u64,
+    /// Built-in grammar name or path to a `.bnf` file; default by task
+    /// (`betr-foraging-avoid` / `betr-nest-avoid`).
+    pub grammar: Option<String>,
+    /// Interaction probability IP.
+    pub ip: f64,
+    pub lateral_transfer: bool,
+    /// Receiver-side probability of losing a gene delivery.
+    pub gene_loss: f64,
+    /// Task % counted as success.
+    pub threshold: f64,
+    pub world: WorldConfig,
+    pub learner: LearnerConfig,
+    pub perturbations: Vec<Scheduled>,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig {
+            steps: 12_000,
+            seed: 1,
+            grammar: None,
+            ip: 0.85,
+            lateral_transfer: true,
+            gene_loss: 0.0,
+            threshold: 80.0,
+            world: WorldConfig::default(),
+            learner: LearnerConfig::default(),
+            perturbations: Vec::new(),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("config {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("{field}: {reason}")]
+    Invalid { field: String, reason: String },
+    #[error("grammar {name}: {message}")]
+    Grammar { name: String, message: String },
+}
+
+fn invalid(field: &str, reason: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid { field: field.into(), reason: reason.into() }
+}
+
+/// A validated run: everything a trial needs, grammar parsed.
+#[derive(Clone, Debug)]
+pub struct RunSpec {
+    pub config: RunConfig,
+    /// Name (built-in) or path the grammar came from.
+    pub grammar_name: String,
+    /// The grammar's text, for the manifest digest.
+    pub grammar_text: Arc<str>,
+    pub grammar: Arc<Grammar>,
+    pub learner: Arc<LearnerConfig>,
+}
+
+impl RunConfig {
+    /// Parse a TOML file.
+    pub fn from_file(path: &Path) -> Result<RunConfig, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Read { path: path.into(), source })?;
+        Self::from_toml(&text).map_err(|message| ConfigError::Parse { path: path.into(), message })
+    }
+
+    pub fn from_toml(text: &str) -> Result<RunConfig, String> {
+        toml::from_str(text).map_err(|e| e.to_string())
+    }
+
+    /// The grammar name this run uses.
+    pub fn grammar_name(&self) -> String {
+        self.grammar.clone().unwrap_or_else(|| match self.world.task {
+            Task::Foraging => "betr-foraging-avoid".into(),
+            Task::Nest => "betr-nest-avoid".into(),
+        })
+    }
+
+    /// The initial regime (IP, lateral transfer, loss).
+    pub fn regime(&self) -> Regime {
+        Regime { lateral_transfer: self.lateral_transfer, ip: self.ip, gene_loss: self.gene_loss }
+    }
+
+    /// Check every value and load the grammar.
+    pub fn validate(self) -> Result<RunSpec, ConfigError> {
+        if self.steps == 0 {
+            return Err(invalid("steps", "must be at least 1"));
+        }
+        if !(0.0..=1.0).contains(&self.ip) {
+            return Err(invalid("ip", format!("interaction probability {} is outside [0, 1]", self.ip)));
+        }
+        if !(0.0..=1.0).contains(&self.gene_loss) {
+            return Err(invalid("gene_loss", format!("{} is outside [0, 1]", self.gene_loss)));
+        }
+        if !(0.0..=100.0).contains(&self.threshold) {
+            return Err(invalid("threshold", "must lie in [0, 100]"));
+        }
+        self.world.validate().map_err(|e| invalid("world", e.to_string()))?;
+        self.learner.validate().map_err(|e| invalid("learner", e.to_string()))?;
+        for (i, p) in self.perturbations.iter().enumerate() {
+            let bad = match &p.change {
+                Perturbation::SetIp(v) | Perturbation::SetGeneLoss(v) | Perturbation::KillFraction(v) => {
+                    !(0.0..=1.0).contains(v)
+                }
+                Perturbation::AddObstacles { radius, .. } => *radius <= 0,
+                Perturbation::SetLateralTransfer(_) => false,
+            };
+            if bad {
+                return Err(invalid(&format!("perturbations[{i}].change"), "value out of range"));
+            }
+        }
+        let name = self.grammar_name();
+        let (grammar, text) = load_grammar(&name)?;
+        let learner = Arc::new(self.learner.clone());
+        Ok(RunSpec {
+            config: self,
+            grammar_name: name,
+            grammar_text: text.into(),
+            grammar: Arc::new(grammar),
+            learner,
+        })
+    }
+}
+
+/// Load a grammar by built-in name or file path; returns it with its text.
+pub fn load_grammar(name: &str) -> Result<(Grammar, String), ConfigError> {
+    let text = match grammars::builtin(name) {
+        Some(t) => t.to_string(),
+        None => std::fs::read_to_string(name).map_err(|e| ConfigError::Grammar {
+            name: name.into(),
+            message: format!(
+                "not a built-in grammar ({}) and not a readable file: {e}",
+                grammars::names().collect::<Vec<_>>().join(", ")
+            ),
+        })?,
+    };
+    let g = Grammar::parse(&text)
+        .map_err(|e| ConfigError::Grammar { name: name.into(), message: e.to_string() })?;
+    Ok((g, text))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_key_is_named() {
+        let e = RunConfig::from_toml("steps = 5\nbogus = 1\n").unwrap_err();
+        assert!(e.contains("bogus"), "{e}");
+        let e = RunConfig::from_toml("[world]\ngrid_size = 5\n").unwrap_err();
+        assert!(e.contains("grid_size"), "{e}");
+    }
+
+    #[test]
+    fn defaults_are_the_paper() {
+        let c = RunConfig::default();
+        assert_eq!((c.steps, c.ip, c.learner.st, c.world.grid, c.world.agents), (12_000, 0.85, 7, 10, 100));
+    }
+}

@@ -1,0 +1,334 @@
+//! `geese`: run GEESE trials, inspect grammars, benchmark the core.
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use geese_agent::bt::Bt;
+use geese_agent::ge::{self, GeParams};
+use geese_agent::FitnessVariant;
+use geese_orchestrator::config::{load_grammar, RunConfig};
+use geese_orchestrator::output::{write_manifest, StepCsv};
+use geese_orchestrator::{bench, Trial};
+use geese_world::{Layout, Task};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(name = "geese", version, about = "Online evolution of resilient swarm behaviours (BeTr-GEESE)")]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Run one trial (defaults: the paper's foraging setting).
+    Run(RunArgs),
+    /// Inspect grammars: map a genome, print the behaviour tree, list built-ins.
+    Grammar {
+        #[command(subcommand)]
+        cmd: GrammarCmd,
+    },
+    /// Benchmark the simulation core: learning agent-steps per second on one thread.
+    Bench(BenchArgs),
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum TaskArg {
+    Foraging,
+    Nest,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum LayoutArg {
+    Reference,
+    Paper,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum FitnessArg {
+    Code,
+    Paper,
+}
+
+/// Run options; each overrides the same setting of `--config`.
+#[derive(Args)]
+struct RunArgs {
+    /// TOML config file (see README); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[arg(long, value_enum)]
+    task: Option<TaskArg>,
+    /// Number of agents N.
+    #[arg(long)]
+    agents: Option<u32>,
+    #[arg(long)]
+    steps: Option<u64>,
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Interaction probability IP in [0, 1].
+    #[arg(long)]
+    ip: Option<f64>,
+    /// Storage threshold ST (≥ 4).
+    #[arg(long)]
+    st: Option<usize>,
+    /// Grid size GS (must divide half the arena).
+    #[arg(long)]
+    gs: Option<i32>,
+    /// Built-in grammar name or .bnf file.
+    #[arg(long)]
+    grammar: Option<String>,
+    #[arg(long, value_enum)]
+    layout: Option<LayoutArg>,
+    #[arg(long, value_enum)]
+    fitness: Option<FitnessArg>,
+    /// Switch lateral transfer off for the whole run.
+    #[arg(long)]
+    no_lateral_transfer: bool,
+    /// Output directory (default results/<task>-seed<seed>).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+impl RunArgs {
+    fn resolve(&self) -> Result<RunConfig> {
+        let mut c = match &self.config {
+            Some(p) => RunConfig::from_file(p)?,
+            None => RunConfig::default(),
+        };
+        if let Some(t) = self.task {
+            c.world.task = match t {
+                TaskArg::Foraging => Task::Foraging,
+                TaskArg::Nest => Task::Nest,
+            };
+        }
+        if let Some(v) = self.agents {
+            c.world.agents = v;
+        }
+        if let Some(v) = self.steps {
+            c.steps = v;
+        }
+        if let Some(v) = self.seed {
+            c.seed = v;
+        }
+        if let Some(v) = self.ip {
+            c.ip = v;
+        }
+        if let Some(v) = self.st {
+            c.learner.st = v;
+        }
+        if let Some(v) = self.gs {
+            c.world.grid = v;
+        }
+        if let Some(v) = &self.grammar {
+            c.grammar = Some(v.clone());
+        }
+        if let Some(l) = self.layout {
+            c.world.layout = match l {
+                LayoutArg::Reference => Layout::Reference,
+                LayoutArg::Paper => Layout::Paper,
+            };
+        }
+        if let Some(f) = self.fitness {
+            c.learner.fitness = match f {
+                FitnessArg::Code => FitnessVariant::Code,
+                FitnessArg::Paper => FitnessVariant::Paper,
+            };
+        }
+        if self.no_lateral_transfer {
+            c.lateral_transfer = false;
+        }
+        Ok(c)
+    }
+}
+
+#[derive(Subcommand)]
+enum GrammarCmd {
+    /// Map a genome; prints {"valid","used_codons","depth","phenotype","diversity"}.
+    Map(MapArgs),
+    /// Print the behaviour tree a genome builds.
+    Tree(MapArgs),
+    /// List the built-in grammars.
+    List,
+}
+
+#[derive(Args)]
+struct MapArgs {
+    /// Built-in grammar name or .bnf file.
+    #[arg(long)]
+    grammar: String,
+    /// Comma-separated codons, e.g. 1213,1114,267
+    #[arg(long)]
+    genome: String,
+    #[arg(long, default_value_t = 2000)]
+    codon_size: u32,
+    #[arg(long, default_value_t = 10)]
+    max_depth: usize,
+    #[arg(long, default_value_t = 0)]
+    max_wraps: usize,
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    #[arg(long, default_value_t = 100)]
+    agents: u32,
+    #[arg(long, default_value_t = 12_000)]
+    steps: u64,
+    #[arg(long, value_enum, default_value = "foraging")]
+    task: TaskArg,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Repetitions (different seeds from --seed on).
+    #[arg(long, default_value_t = 1)]
+    repeat: u32,
+}
+
+fn parse_genome(s: &str) -> Result<Vec<u32>> {
+    let mut g = Vec::new();
+    for (i, tok) in s.split(',').enumerate() {
+        let tok = tok.trim();
+        if tok.is_empty() {
+            bail!("genome: codon {} is empty (expected comma-separated non-negative integers)", i + 1);
+        }
+        let v: u32 = tok
+            .parse()
+            .with_context(|| format!("genome: codon {} ('{tok}') is not a non-negative integer", i + 1))?;
+        g.push(v);
+    }
+    Ok(g)
+}
+
+fn ge_params(a: &MapArgs) -> Result<GeParams> {
+    let p = GeParams {
+        codon_size: a.codon_size,
+        max_tree_depth: a.max_depth,
+        max_wraps: a.max_wraps,
+        ..GeParams::default()
+    };
+    p.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(p)
+}
+
+fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
+    match cmd {
+        GrammarCmd::List => {
+            for n in geese_agent::grammars::names() {
+                println!("{n}");
+            }
+        }
+        GrammarCmd::Map(a) => {
+            let (g, _) = load_grammar(&a.grammar)?;
+            let genome = parse_genome(&a.genome)?;
+            let p = ge_params(&a)?;
+            let ind = ge::evaluate(&g, genome, &p);
+            let v = match &ind.phenotype {
+                Some(ph) => serde_json::json!({
+                    "valid": true,
+                    "used_codons": ind.used_codons,
+                    "depth": ind.depth,
+                    "phenotype": ph.as_ref(),
+                    "diversity": ind.fitness,
+                }),
+                None => serde_json::json!({ "valid": false }),
+            };
+            println!("{v}");
+        }
+        GrammarCmd::Tree(a) => {
+            let (g, _) = load_grammar(&a.grammar)?;
+            let genome = parse_genome(&a.genome)?;
+            let p = ge_params(&a)?;
+            let ind = ge::evaluate(&g, genome, &p);
+            let Some(ph) = &ind.phenotype else {
+                bail!("the genome is invalid under this grammar (its derivation does not finish)");
+            };
+            let root = ge::parse_phenotype(ph).map_err(|e| anyhow::anyhow!("phenotype: {e}"))?;
+            let bt = Bt::from_pnode(&root).map_err(|e| anyhow::anyhow!("behaviour tree: {e}"))?;
+            print!("{}", bt.render());
+        }
+    }
+    Ok(())
+}
+
+fn run_cmd(a: RunArgs) -> Result<()> {
+    let cfg = a.resolve()?;
+    let spec = cfg.validate()?;
+    let c = &spec.config;
+    let out = a.out.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}-seed{}", c.world.task, c.seed)));
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create output directory {}", out.display()))?;
+    let csv_path = out.join("steps.csv");
+    let mut csv = StepCsv::create(&csv_path).with_context(|| format!("cannot write {}", csv_path.display()))?;
+    eprintln!(
+        "geese run: {} agents, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
+        c.world.agents, c.steps, c.world.task, spec.grammar_name, c.ip, c.learner.st, c.world.grid, c.seed
+    );
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(c.steps) };
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} steps  task {msg}  [{elapsed} < {eta}]")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let start = std::time::Instant::now();
+    let mut trial = Trial::new(&spec)?;
+    for _ in 0..c.steps {
+        let rep = trial.step();
+        csv.write(&rep)?;
+        if rep.step % 50 == 0 {
+            bar.set_position(rep.step);
+            bar.set_message(format!("{:.2} %", rep.task_pct));
+        }
+    }
+    bar.finish_and_clear();
+    csv.finish()?;
+    let mut summary = trial.summary().clone();
+    summary.wall_seconds = start.elapsed().as_secs_f64();
+    write_manifest(&out, &spec, "in-process", &summary)?;
+    println!("final task %: {:.2}", summary.final_task_pct);
+    match summary.first_step_at_threshold {
+        Some(s) => println!("reached {} % at step {s}", c.threshold),
+        None => println!("never reached {} % (max {:.2} %)", c.threshold, summary.max_task_pct),
+    }
+    println!("wall time: {:.2} s", summary.wall_seconds);
+    println!("results: {} and {}", csv_path.display(), out.join("manifest.json").display());
+    Ok(())
+}
+
+fn bench_cmd(a: BenchArgs) -> Result<()> {
+    println!("geese bench: {} learning agents, {} steps, one thread", a.agents, a.steps);
+    let mut rates = Vec::new();
+    for r in 0..a.repeat {
+        let mut cfg = RunConfig::default();
+        cfg.world.agents = a.agents;
+        cfg.steps = a.steps;
+        cfg.seed = a.seed + r as u64;
+        cfg.world.task = match a.task {
+            TaskArg::Foraging => Task::Foraging,
+            TaskArg::Nest => Task::Nest,
+        };
+        let b = bench::bench_core(cfg)?;
+        println!(
+            "seed {}: {:.3} s, {:.0} agent-steps/s, {:.1} steps/s, {} genetic steps, final task {:.2} %",
+            a.seed + r as u64,
+            b.seconds,
+            b.agent_steps_per_sec,
+            b.steps as f64 / b.seconds,
+            b.genetic_steps,
+            b.final_task_pct
+        );
+        rates.push(b.agent_steps_per_sec);
+    }
+    rates.sort_by(|x, y| x.total_cmp(y));
+    println!("median: {:.0} agent-steps/s", rates[rates.len() / 2]);
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().cmd {
+        Cmd::Run(a) => run_cmd(a),
+        Cmd::Grammar { cmd } => grammar_cmd(cmd),
+        Cmd::Bench(a) => bench_cmd(a),
+    }
+}

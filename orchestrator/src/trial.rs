@@ -1,0 +1,140 @@
+//! One trial in one process: a world and N learners over the in-memory transport.
+//!
+//! This is the lock-step loop of DESIGN.md §2 with [`Mailboxes`] as the bus: percepts
+//! go to the cell of each live agent, genes to the cell they were published on, intents
+//! to the world, which resolves them in agent-id order. The distributed runtime drives the
+//! very same [`World`] and [`Learner`] code, which is why the two agree step for step.
+use crate::config::RunSpec;
+use geese_agent::Learner;
+use geese_proto::membus::Mailboxes;
+use geese_proto::{GeneMsg, Intent, StepReport};
+use geese_world::World;
+use serde::{Deserialize, Serialize};
+
+/// What a finished trial amounts to.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrialSummary {
+    pub seed: u64,
+    pub steps: u64,
+    pub final_task_pct: f64,
+    pub max_task_pct: f64,
+    /// First step whose task % reached the threshold.
+    pub first_step_at_threshold: Option<u64>,
+    /// Task % exceeded the threshold at some step.
+    pub success: bool,
+    pub genetic_steps: u64,
+    pub stagnation_steps: u64,
+    pub wall_seconds: f64,
+}
+
+/// A world and its learners, stepped in lock-step.
+pub struct Trial {
+    pub world: World,
+    pub agents: Vec<Learner>,
+    genes: Mailboxes<GeneMsg>,
+    intents: Vec<Option<Intent>>,
+    threshold: f64,
+    summary: TrialSummary,
+}
+
+impl Trial {
+    /// Build the world and agents of `spec`.
+    pub fn new(spec: &RunSpec) -> Result<Trial, geese_world::ConfigError> {
+        let cfg = &spec.config;
+        let mut world = World::new(cfg.world.clone(), cfg.seed)?;
+        world.set_regime(cfg.regime());
+        for p in &cfg.perturbations {
+            world.schedule(p.at, p.change.clone());
+        }
+        let geom = world.geometry();
+        let hub = world.hub();
+        let agents = (0..cfg.world.agents)
+            .map(|id| Learner::new(id, spec.learner.clone(), spec.grammar.clone(), geom, hub, cfg.seed))
+            .collect();
+        Ok(Trial {
+            genes: Mailboxes::new(geom.cell_count()),
+            intents: vec![None; cfg.world.agents as usize],
+            threshold: cfg.threshold,
+            summary: TrialSummary {
+                seed: cfg.seed,
+                steps: 0,
+                final_task_pct: 0.0,
+                max_task_pct: 0.0,
+                first_step_at_threshold: None,
+                success: false,
+                genetic_steps: 0,
+                stagnation_steps: 0,
+                wall_seconds: 0.0,
+            },
+            world,
+            agents,
+        })
+    }
+
+    /// Run one lock-step step and return its report.
+    pub fn step(&mut self) -> StepReport {
+        let percepts = self.world.percepts();
+        let geom = self.world.geometry();
+        self.genes.clear();
+        // Which percept each agent reads: the one of the cell its body is in.
+        let cells: Vec<Option<usize>> = self
+            .world
+            .bodies()
+            .iter()
+            .map(|b| {
+                if !b.live {
+                    return None;
+                }
+                let c = geom.cell_of(b.pos);
+                percepts.binary_search_by_key(&c, |p| p.cell).ok()
+            })
+            .collect();
+        for (agent, cell) in self.agents.iter_mut().zip(&cells) {
+            if let Some(pi) = cell {
+                let p = &percepts[*pi];
+                if let Some(g) = agent.begin_step(p) {
+                    self.genes.publish(p.cell, g);
+                }
+            }
+        }
+        for ((agent, cell), slot) in self.agents.iter_mut().zip(&cells).zip(self.intents.iter_mut()) {
+            *slot = cell.map(|pi| agent.finish_step(self.genes.get(percepts[pi].cell)));
+        }
+        let rep = self.world.resolve(&self.intents);
+        self.record(&rep);
+        rep
+    }
+
+    fn record(&mut self, rep: &StepReport) {
+        let s = &mut self.summary;
+        s.steps = rep.step;
+        s.final_task_pct = rep.task_pct;
+        s.max_task_pct = s.max_task_pct.max(rep.task_pct);
+        if s.first_step_at_threshold.is_none() && rep.task_pct >= self.threshold {
+            s.first_step_at_threshold = Some(rep.step);
+        }
+        s.success |= rep.task_pct > self.threshold;
+        s.genetic_steps += rep.genetic_steps as u64;
+        s.stagnation_steps += rep.stagnation_steps as u64;
+    }
+
+    pub fn summary(&self) -> &TrialSummary {
+        &self.summary
+    }
+}
+
+/// Run a whole trial, calling `observe` after every step.
+pub fn run_trial(
+    spec: &RunSpec,
+    mut observe: impl FnMut(&StepReport),
+) -> Result<TrialSummary, geese_world::ConfigError> {
+    let start = std::time::Instant::now();
+    let mut t = Trial::new(spec)?;
+    for _ in 0..spec.config.steps {
+        let rep = t.step();
+        observe(&rep);
+    }
+    let mut s = t.summary.clone();
+    s.wall_seconds = start.elapsed().as_secs_f64();
+    Ok(s)
+}

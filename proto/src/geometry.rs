@@ -1,0 +1,241 @@
+//! Arena geometry and the grid-cell rules of REFERENCE.md §1.1–1.2.
+//!
+//! Both the world (which registers objects) and the agents (which reason about obstacle
+//! footprints) need the exact same integer arithmetic, so it lives in the contract.
+use serde::{Deserialize, Serialize};
+
+/// An integer position; the origin is the centre of the arena.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+pub struct Pos {
+    pub x: i32,
+    pub y: i32,
+}
+
+impl Pos {
+    pub const fn new(x: i32, y: i32) -> Self {
+        Pos { x, y }
+    }
+}
+
+/// 0-based, row-major cell index (the reference's 1-based id minus one).
+pub type CellIdx = u32;
+
+/// Arena width/height and grid size. Validated on construction: (W/2) and (H/2) must be
+/// multiples of the grid size, as the reference requires.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Geometry {
+    pub width: i32,
+    pub height: i32,
+    pub grid: i32,
+}
+
+/// Why a geometry is not usable.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum GeometryError {
+    #[error("arena width and height must be positive and even, got {width}x{height}")]
+    BadArena { width: i32, height: i32 },
+    #[error("grid size {grid} must be positive and divide half the arena ({half_w} and {half_h})")]
+    BadGrid { grid: i32, half_w: i32, half_h: i32 },
+}
+
+impl Geometry {
+    pub fn new(width: i32, height: i32, grid: i32) -> Result<Self, GeometryError> {
+        if width <= 0 || height <= 0 || width % 2 != 0 || height % 2 != 0 {
+            return Err(GeometryError::BadArena { width, height });
+        }
+        let (half_w, half_h) = (width / 2, height / 2);
+        if grid <= 0 || half_w % grid != 0 || half_h % grid != 0 {
+            return Err(GeometryError::BadGrid { grid, half_w, half_h });
+        }
+        Ok(Geometry { width, height, grid })
+    }
+
+    pub fn half_w(&self) -> i32 {
+        self.width / 2
+    }
+    pub fn half_h(&self) -> i32 {
+        self.height / 2
+    }
+    /// Number of columns (cells along x).
+    pub fn cols(&self) -> i32 {
+        self.width / self.grid
+    }
+    /// Number of rows (cells along y).
+    pub fn rows(&self) -> i32 {
+        self.height / self.grid
+    }
+    pub fn cell_count(&self) -> usize {
+        (self.cols() * self.rows()) as usize
+    }
+
+    /// Column/row of a point: floor division, points at or beyond the +edge go to the
+    /// last column/row, points beyond the −edge to the first (REFERENCE §1.2).
+    pub fn col_row(&self, p: Pos) -> (i32, i32) {
+        let g = self.grid;
+        let kx = if p.x >= self.half_w() { self.half_w() / g - 1 } else { p.x.div_euclid(g) };
+        let ky = if p.y >= self.half_h() { self.half_h() / g - 1 } else { p.y.div_euclid(g) };
+        let col = (kx + self.half_w() / g).clamp(0, self.cols() - 1);
+        let row = (ky + self.half_h() / g).clamp(0, self.rows() - 1);
+        (col, row)
+    }
+
+    pub fn cell_of(&self, p: Pos) -> CellIdx {
+        let (c, r) = self.col_row(p);
+        (r * self.cols() + c) as CellIdx
+    }
+
+    /// Column and row of a cell index.
+    pub fn cell_col_row(&self, cell: CellIdx) -> (i32, i32) {
+        let c = cell as i32;
+        (c % self.cols(), c / self.cols())
+    }
+
+    /// The lower-left corner of a cell, in arena coordinates.
+    pub fn cell_origin(&self, cell: CellIdx) -> Pos {
+        let (c, r) = self.cell_col_row(cell);
+        Pos::new(c * self.grid - self.half_w(), r * self.grid - self.half_h())
+    }
+
+    /// Neighbourhood N(p, r): the cell of p when r ≤ GS, otherwise the square block of
+    /// cells within ⌊r/GS⌋ columns and rows, clipped at the arena edge. Calls `f` for each
+    /// cell in row-major order.
+    pub fn for_each_neighbourhood_cell(&self, p: Pos, radius: i32, mut f: impl FnMut(CellIdx)) {
+        let (c0, r0) = self.col_row(p);
+        let s = if radius <= self.grid { 0 } else { radius / self.grid };
+        for r in (r0 - s).max(0)..=(r0 + s).min(self.rows() - 1) {
+            for c in (c0 - s).max(0)..=(c0 + s).min(self.cols() - 1) {
+                f((r * self.cols() + c) as CellIdx);
+            }
+        }
+    }
+
+    /// The cells of N(p, r) as a vector (row-major).
+    pub fn neighbourhood(&self, p: Pos, radius: i32) -> Vec<CellIdx> {
+        let mut v = Vec::new();
+        self.for_each_neighbourhood_cell(p, radius, |c| v.push(c));
+        v
+    }
+
+    /// Axis-aligned box (x1, y1, x2, y2) covered by the cells of N(p, r), as used by the
+    /// obstacle-avoidance ray test (REFERENCE §2.4).
+    pub fn neighbourhood_box(&self, p: Pos, radius: i32) -> (i32, i32, i32, i32) {
+        let (c0, r0) = self.col_row(p);
+        let s = if radius <= self.grid { 0 } else { radius / self.grid };
+        let (cl, ch) = ((c0 - s).max(0), (c0 + s).min(self.cols() - 1));
+        let (rl, rh) = ((r0 - s).max(0), (r0 + s).min(self.rows() - 1));
+        let g = self.grid;
+        (
+            cl * g - self.half_w(),
+            rl * g - self.half_h(),
+            (ch + 1) * g - self.half_w(),
+            (rh + 1) * g - self.half_h(),
+        )
+    }
+
+    /// Border rule of REFERENCE §1.1 applied to a proposed position: an overshooting axis
+    /// is put 2 units inside the edge and the heading turns by π (per axis).
+    pub fn reflect(&self, p: Pos, heading: f64) -> (Pos, f64) {
+        let (mut x, mut y, mut h) = (p.x, p.y, heading);
+        let (hw, hh) = (self.half_w(), self.half_h());
+        if x > hw {
+            x = hw - 2;
+            h += std::f64::consts::PI;
+        } else if x < -hw {
+            x = -hw + 2;
+            h += std::f64::consts::PI;
+        }
+        if y > hh {
+            y = hh - 2;
+            h += std::f64::consts::PI;
+        } else if y < -hh {
+            y = -hh + 2;
+            h += std::f64::consts::PI;
+        }
+        (Pos::new(x, y), h.rem_euclid(std::f64::consts::TAU))
+    }
+
+    /// Does this position lie inside the (closed) arena?
+    pub fn contains(&self, p: Pos) -> bool {
+        p.x.abs() <= self.half_w() && p.y.abs() <= self.half_h()
+    }
+}
+
+/// Round half to even, as NumPy's `round` does.
+pub fn round_half_even(v: f64) -> i32 {
+    let r = v.round();
+    if (v - v.trunc()).abs() == 0.5 {
+        (2.0 * (v / 2.0).round()) as i32
+    } else {
+        r as i32
+    }
+}
+
+/// The `Move` primitive's destination (REFERENCE §1.6 steps 1–3): step length `speed`
+/// along `heading`, rounded half-to-even, then the border rule.
+pub fn step_destination(geom: &Geometry, from: Pos, heading: f64, speed: f64) -> (Pos, f64) {
+    let x = round_half_even(from.x as f64 + speed * heading.cos());
+    let y = round_half_even(from.y as f64 + speed * heading.sin());
+    geom.reflect(Pos::new(x, y), heading)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cell_rules_match_reference() {
+        let g = Geometry::new(100, 100, 10).unwrap();
+        // The origin belongs to the cell [0,10)x[0,10): column 5, row 5.
+        assert_eq!(g.col_row(Pos::new(0, 0)), (5, 5));
+        assert_eq!(g.cell_of(Pos::new(0, 0)), 55);
+        assert_eq!(g.col_row(Pos::new(-1, -1)), (4, 4));
+        assert_eq!(g.col_row(Pos::new(-30, -30)), (2, 2));
+        assert_eq!(g.col_row(Pos::new(50, 50)), (9, 9));
+        assert_eq!(g.col_row(Pos::new(-50, -50)), (0, 0));
+        assert_eq!(g.col_row(Pos::new(9, 10)), (5, 6));
+        assert_eq!(g.cell_count(), 100);
+    }
+
+    #[test]
+    fn neighbourhoods() {
+        let g = Geometry::new(100, 100, 10).unwrap();
+        assert_eq!(g.neighbourhood(Pos::new(0, 0), 10), vec![55]);
+        let g5 = Geometry::new(100, 100, 5).unwrap();
+        assert_eq!(g5.neighbourhood(Pos::new(0, 0), 10).len(), 25);
+        let g2 = Geometry::new(100, 100, 2).unwrap();
+        assert_eq!(g2.neighbourhood(Pos::new(0, 0), 10).len(), 121);
+        assert_eq!(g2.neighbourhood(Pos::new(0, 0), 3).len(), 9);
+        // Clipped at the edge.
+        assert_eq!(g2.neighbourhood(Pos::new(-50, -50), 3).len(), 4);
+        assert_eq!(g.neighbourhood_box(Pos::new(30, 30), 10), (30, 30, 40, 40));
+    }
+
+    #[test]
+    fn border_rule() {
+        let g = Geometry::new(100, 100, 10).unwrap();
+        let (p, h) = g.reflect(Pos::new(51, 0), 0.0);
+        assert_eq!(p, Pos::new(48, 0));
+        assert!((h - std::f64::consts::PI).abs() < 1e-12);
+        let (p, h) = g.reflect(Pos::new(51, -52), 0.5);
+        assert_eq!(p, Pos::new(48, -48));
+        assert!((h - 0.5).abs() < 1e-12);
+        assert_eq!(g.reflect(Pos::new(50, 50), 1.0).0, Pos::new(50, 50));
+    }
+
+    #[test]
+    fn bankers_rounding() {
+        assert_eq!(round_half_even(0.5), 0);
+        assert_eq!(round_half_even(1.5), 2);
+        assert_eq!(round_half_even(2.5), 2);
+        assert_eq!(round_half_even(-0.5), 0);
+        assert_eq!(round_half_even(-1.5), -2);
+        assert_eq!(round_half_even(1.4), 1);
+        assert_eq!(round_half_even(-1.6), -2);
+    }
+
+    #[test]
+    fn bad_geometry_is_an_error() {
+        assert!(Geometry::new(100, 100, 7).is_err());
+        assert!(Geometry::new(0, 100, 10).is_err());
+    }
+}

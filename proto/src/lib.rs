@@ -1,0 +1,25 @@
+//! The wire contract between the GEESE world, its agents and the orchestrator.
+//!
+//! Nothing here simulates anything: these are the messages of the lock-step protocol
+//! (DESIGN.md §2), the key expressions they travel on, the versioned `postcard`
+//! envelope that encodes them, and the in-memory bus used when everything runs in one
+//! process. Both transports carry exactly these types, which is what lets an in-process
+//! run and a distributed run produce the same trajectory.
+//!
+//! # Layout
+//! - [`geometry`]: positions, arena size and the exact grid-cell arithmetic both sides use.
+//! - [`message`]: percepts, genes, intents, step reports, control commands.
+//! - [`keys`]: the key expressions of every topic, defined once.
+//! - [`codec`]: the versioned envelope and its decode errors.
+//! - [`membus`]: the in-memory transport.
+//! - [`seed`]: named random streams and portable digests.
+pub mod codec;
+pub mod geometry;
+pub mod keys;
+pub mod membus;
+pub mod message;
+pub mod seed;
+
+pub use codec::{decode, encode, CodecError, WIRE_VERSION};
+pub use geometry::{CellIdx, Geometry, Pos};
+pub use message::*;

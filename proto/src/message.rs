@@ -1,0 +1,232 @@
+//! Messages of the lock-step protocol (DESIGN.md §2).
+//!
+//! One step: the world publishes a [`Percept`] per occupied cell; each agent publishes a
+//! [`GeneMsg`] to its cell; each agent publishes an [`Intent`]; the world resolves the
+//! intents and publishes a [`StepReport`]. [`Control`] commands come from the
+//! orchestrator. Everything is plain data with `serde` derives; the codec wraps it.
+use crate::geometry::{CellIdx, Pos};
+use serde::{Deserialize, Serialize};
+
+pub type AgentId = u32;
+pub type ObjectId = u32;
+
+/// Object types of REFERENCE §1.3 (names as the grammars spell them).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, PartialOrd, Ord)]
+pub enum ObjectKind {
+    Hub,
+    Sites,
+    Food,
+    Debris,
+    Obstacles,
+    Boundary,
+    Traps,
+}
+
+impl ObjectKind {
+    pub const ALL: [ObjectKind; 7] = [
+        ObjectKind::Hub,
+        ObjectKind::Sites,
+        ObjectKind::Food,
+        ObjectKind::Debris,
+        ObjectKind::Obstacles,
+        ObjectKind::Boundary,
+        ObjectKind::Traps,
+    ];
+
+    /// Parse the grammar's spelling of an object type.
+    pub fn from_name(s: &str) -> Option<Self> {
+        Some(match s {
+            "Hub" => ObjectKind::Hub,
+            "Sites" => ObjectKind::Sites,
+            "Food" => ObjectKind::Food,
+            "Debris" => ObjectKind::Debris,
+            "Obstacles" => ObjectKind::Obstacles,
+            "Boundary" => ObjectKind::Boundary,
+            "Traps" => ObjectKind::Traps,
+            _ => return None,
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ObjectKind::Hub => "Hub",
+            ObjectKind::Sites => "Sites",
+            ObjectKind::Food => "Food",
+            ObjectKind::Debris => "Debris",
+            ObjectKind::Obstacles => "Obstacles",
+            ObjectKind::Boundary => "Boundary",
+            ObjectKind::Traps => "Traps",
+        }
+    }
+
+    /// Only obstacles and traps block movement.
+    pub fn passable(self) -> bool {
+        !matches!(self, ObjectKind::Obstacles | ObjectKind::Traps)
+    }
+
+    /// Things an agent can pick up.
+    pub fn carryable(self) -> bool {
+        matches!(self, ObjectKind::Food | ObjectKind::Debris)
+    }
+
+    /// Kinds that go to an agent's static memory instead of its blackboard.
+    pub fn memorised(self) -> bool {
+        matches!(self, ObjectKind::Hub | ObjectKind::Sites | ObjectKind::Boundary)
+    }
+}
+
+/// A non-agent object as the world shows it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ObjectInfo {
+    pub id: ObjectId,
+    pub kind: ObjectKind,
+    pub pos: Pos,
+    pub radius: i32,
+    /// Weight (0 for objects that have none).
+    pub weight: i32,
+    /// Carrying capacity it takes up when carried.
+    pub capacity: i32,
+}
+
+/// What everyone can see of an agent.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AgentPublic {
+    pub id: AgentId,
+    pub pos: Pos,
+    pub heading: f64,
+    pub carrying: Vec<ObjectInfo>,
+    /// False once the agent's process is gone; its body idles.
+    pub live: bool,
+    /// Learning agents take part in lateral transfer.
+    pub learning: bool,
+}
+
+/// Run-wide switches that change at scheduled steps; carried in every percept so that
+/// all agents apply them at exactly the same step on every transport.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Regime {
+    pub lateral_transfer: bool,
+    pub ip: f64,
+    pub gene_loss: f64,
+}
+
+impl Default for Regime {
+    fn default() -> Self {
+        Regime { lateral_transfer: true, ip: 0.85, gene_loss: 0.0 }
+    }
+}
+
+/// One cell's view at the start of step `step`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Percept {
+    pub step: u64,
+    pub cell: CellIdx,
+    pub regime: Regime,
+    /// Non-agent objects registered in this cell, in registration order.
+    pub objects: Vec<ObjectInfo>,
+    /// Impassable objects registered in nearby cells (close enough for a move or an
+    /// obstacle probe from this cell to reach them), excluding those in `objects`.
+    pub nearby_impassable: Vec<ObjectInfo>,
+    /// Agents registered in this cell, in id order.
+    pub agents: Vec<AgentPublic>,
+}
+
+/// An agent's current gene, offered to its cell-mates for lateral transfer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GeneMsg {
+    pub step: u64,
+    pub from: AgentId,
+    pub genome: Vec<u32>,
+    pub fitness: f64,
+}
+
+/// One primitive change an agent asks the world to make, applied in order.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Op {
+    /// Move to `to`, travelling along `heading` (before any border reflection).
+    Move { to: Pos, heading: f64 },
+    /// Pick up an object registered in the agent's cell.
+    Pick { object: ObjectId },
+    /// Drop a carried object where the agent stands.
+    Drop { object: ObjectId },
+}
+
+/// Why a genetic step ran.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum GeneticTrigger {
+    #[default]
+    None,
+    /// The storage pool reached the threshold ST.
+    Storage,
+    /// The stagnation rule injected fresh individuals.
+    Stagnation,
+}
+
+/// Per-agent numbers the world aggregates into the step report.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct AgentStats {
+    /// Lateral-transfer rate: genes kept by the IP filter this step (0 if fewer than 2).
+    pub lt_rate: u32,
+    pub genetic: GeneticTrigger,
+    pub fitness: f64,
+    /// Digest of the agent's current genome, for cross-transport parity checks.
+    pub gene_digest: u64,
+    /// Gene messages this agent expected but did not get (lost or late).
+    pub genes_lost: u32,
+}
+
+/// What an agent decided for step `step`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Intent {
+    pub step: u64,
+    pub agent: AgentId,
+    /// Heading at the end of the tick (turns without a move change only this).
+    pub heading: f64,
+    pub ops: Vec<Op>,
+    pub stats: AgentStats,
+}
+
+/// The world's summary of one resolved step.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct StepReport {
+    pub step: u64,
+    /// Task percentage (foraging or maintenance), rounded to 2 decimals.
+    pub task_pct: f64,
+    /// Mean and standard deviation of the LT rate over agents with a positive rate.
+    pub lt_mean: f64,
+    pub lt_std: f64,
+    /// Agents whose storage pool triggered a genetic step this step.
+    pub genetic_steps: u32,
+    /// Agents whose stagnation rule triggered a genetic step this step.
+    pub stagnation_steps: u32,
+    pub live_agents: u32,
+    /// Live agents whose intent did not arrive (they idled).
+    pub missing_intents: u32,
+    /// Intents or ops the world refused as invalid.
+    pub rejected: u32,
+    /// Gene deliveries lost (receiver side) this step.
+    pub genes_lost: u32,
+    /// Digest of all agent positions, headings, carried objects and genes.
+    pub digest: u64,
+}
+
+/// Orchestrator → world/agents commands.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Control {
+    Start,
+    Stop,
+    /// Apply at the start of `at_step` (world side; propagated in percepts).
+    Schedule { at_step: u64, change: Perturbation },
+}
+
+/// A run-time change of the world or the swarm (REFERENCE §8.4, §8.6).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Perturbation {
+    /// Add `count` obstacles of `radius` by the obstacle placement rule; they stay.
+    AddObstacles { count: u32, radius: i32 },
+    SetIp(f64),
+    SetLateralTransfer(bool),
+    SetGeneLoss(f64),
+    /// Kill this fraction of the live agents (lowest-drawn ids, seeded).
+    KillFraction(f64),
+}

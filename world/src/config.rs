@@ -1,0 +1,172 @@
+//! World configuration. Every field defaults to the setting of the reference runs
+//! (REFERENCE.md §1.4, §5.1); `validate` turns bad values into errors naming the field.
+use geese_proto::{Geometry, Pos};
+use serde::{Deserialize, Serialize};
+
+/// Which task the world is laid out for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Task {
+    #[default]
+    Foraging,
+    Nest,
+}
+
+impl std::str::FromStr for Task {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "foraging" => Ok(Task::Foraging),
+            "nest" => Ok(Task::Nest),
+            other => Err(format!("unknown task '{other}' (expected foraging or nest)")),
+        }
+    }
+}
+
+impl std::fmt::Display for Task {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Task::Foraging => "foraging",
+            Task::Nest => "nest",
+        })
+    }
+}
+
+/// Which world layout (REFERENCE §1.4).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Layout {
+    /// The reference code's evolution worlds: fixed site at `site` (foraging), five
+    /// boundaries at distance 31 (nest), agents at random positions.
+    #[default]
+    Reference,
+    /// The paper's description: site(s) placed by the site rule at distance 30 from the
+    /// hub, agents start at the hub.
+    Paper,
+}
+
+/// Where agents start.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Start {
+    Random,
+    Hub,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorldConfig {
+    pub task: Task,
+    pub layout: Layout,
+    pub width: i32,
+    pub height: i32,
+    /// Grid-cell size GS.
+    pub grid: i32,
+    /// Number of agents N.
+    pub agents: u32,
+    /// Food or debris units; `None` = one per agent, as the reference code does.
+    pub items: Option<u32>,
+    /// Reference-layout site position (foraging).
+    pub site: Pos,
+    /// Paper-layout number of sites; food is split among them at random.
+    pub sites: u32,
+    /// Distance of sites from the hub in the paper layout.
+    pub site_distance: i32,
+    /// Nest: number of boundary drop zones and their distance from the hub.
+    pub boundaries: u32,
+    pub boundary_distance: i32,
+    /// Obstacles placed by the obstacle rule when the world is built.
+    pub obstacles: u32,
+    pub obstacle_radius: i32,
+    /// Start positions; `None` = the layout's default (random / hub).
+    pub start: Option<Start>,
+}
+
+impl Default for WorldConfig {
+    fn default() -> Self {
+        WorldConfig {
+            task: Task::Foraging,
+            layout: Layout::Reference,
+            width: 100,
+            height: 100,
+            grid: 10,
+            agents: 100,
+            items: None,
+            site: Pos::new(30, 30),
+            sites: 1,
+            site_distance: 30,
+            boundaries: 5,
+            boundary_distance: 31,
+            obstacles: 0,
+            obstacle_radius: 10,
+            start: None,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ConfigError {
+    #[error("world.{field}: {reason}")]
+    Invalid { field: &'static str, reason: String },
+}
+
+fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid { field, reason: reason.into() }
+}
+
+impl WorldConfig {
+    /// Check every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<Geometry, ConfigError> {
+        let geom = Geometry::new(self.width, self.height, self.grid).map_err(|e| match e {
+            geese_proto::geometry::GeometryError::BadArena { .. } => bad("width", e.to_string()),
+            geese_proto::geometry::GeometryError::BadGrid { .. } => bad("grid", e.to_string()),
+        })?;
+        if self.agents == 0 {
+            return Err(bad("agents", "need at least one agent"));
+        }
+        if self.agents > 1_000_000 {
+            return Err(bad("agents", "at most 1,000,000 agents"));
+        }
+        if let Some(0) = self.items {
+            return Err(bad("items", "need at least one item"));
+        }
+        if !geom.contains(self.site) {
+            return Err(bad("site", format!("{:?} lies outside the arena", self.site)));
+        }
+        if self.sites == 0 || self.sites > 36 {
+            return Err(bad("sites", "must be between 1 and 36"));
+        }
+        if self.site_distance <= 0 || self.site_distance >= geom.half_w().min(geom.half_h()) {
+            return Err(bad("site_distance", "must be positive and inside the arena"));
+        }
+        if self.boundaries == 0 || self.boundaries > 36 {
+            return Err(bad("boundaries", "must be between 1 and 36"));
+        }
+        if self.boundary_distance <= 0
+            || self.boundary_distance >= geom.half_w().min(geom.half_h())
+        {
+            return Err(bad("boundary_distance", "must be positive and inside the arena"));
+        }
+        if self.obstacle_radius <= 0 {
+            return Err(bad("obstacle_radius", "must be positive"));
+        }
+        if self.obstacles > 100 {
+            return Err(bad("obstacles", "at most 100 initial obstacles"));
+        }
+        if geom.half_w().min(geom.half_h()) <= 25 && self.obstacles > 0 {
+            return Err(bad("obstacles", "the obstacle rule needs an arena wider than 50"));
+        }
+        Ok(geom)
+    }
+
+    pub fn item_count(&self) -> u32 {
+        self.items.unwrap_or(self.agents)
+    }
+
+    pub fn start(&self) -> Start {
+        self.start.unwrap_or(match self.layout {
+            Layout::Reference => Start::Random,
+            Layout::Paper => Start::Hub,
+        })
+    }
+}

@@ -1,0 +1,112 @@
+//! Task layouts and placement rules (REFERENCE.md §1.4).
+use crate::config::{ConfigError, Layout, Start, Task};
+use crate::world::World;
+use geese_proto::{ObjectId, ObjectKind, Pos};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+/// Radius of hub, sites, food, debris and boundaries in every paper world.
+pub const BIG_RADIUS: i32 = 10;
+/// Attempts before a placement rule gives up (the reference retries forever).
+const MAX_ATTEMPTS: u32 = 10_000;
+
+/// One of the 36 angles of `linspace(0, 2π, 36)` (both 0 and 2π occur).
+fn angle(rng: &mut ChaCha8Rng) -> f64 {
+    let i = rng.random_range(0..36u32);
+    std::f64::consts::TAU * i as f64 / 35.0
+}
+
+/// (trunc(d cos θ), trunc(d sin θ)) around `centre`.
+fn polar(centre: Pos, d: f64, theta: f64) -> Pos {
+    Pos::new(centre.x + (d * theta.cos()).trunc() as i32, centre.y + (d * theta.sin()).trunc() as i32)
+}
+
+/// Site/boundary rule: distance `d` from the hub at one of the 36 angles, redrawn while
+/// its neighbourhood already holds an object.
+fn place_ring(w: &mut World, rng: &mut ChaCha8Rng, kind: ObjectKind, d: i32) -> Result<ObjectId, ConfigError> {
+    let hub = w.hub().pos;
+    for _ in 0..MAX_ATTEMPTS {
+        let p = polar(hub, d as f64, angle(rng));
+        if !w.area_has_objects(p, BIG_RADIUS) {
+            return Ok(w.add_object(kind, p, BIG_RADIUS));
+        }
+    }
+    Err(ConfigError::Invalid {
+        field: if kind == ObjectKind::Sites { "sites" } else { "boundaries" },
+        reason: format!("no free place for another {} at distance {d}", kind.name()),
+    })
+}
+
+/// Obstacle rule: distance from {25, 30, …} below W/2, one of the 36 angles, redrawn
+/// while a non-agent object is registered in its neighbourhood. `None` if no place.
+pub fn place_obstacle(w: &mut World, rng: &mut ChaCha8Rng, radius: i32) -> Option<ObjectId> {
+    let half = w.geometry().half_w().min(w.geometry().half_h());
+    let steps = ((half - 25) + 4) / 5; // arange(25, half, 5)
+    if steps <= 0 {
+        return None;
+    }
+    for _ in 0..MAX_ATTEMPTS {
+        let d = 25 + 5 * rng.random_range(0..steps);
+        let p = polar(Pos::new(0, 0), d as f64, angle(rng));
+        if !w.area_has_objects(p, radius) {
+            return Some(w.add_object(ObjectKind::Obstacles, p, radius));
+        }
+    }
+    None
+}
+
+/// Populate a fresh world.
+pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigError> {
+    let cfg = w.config().clone();
+    let hub = w.add_object(ObjectKind::Hub, Pos::new(0, 0), BIG_RADIUS);
+    let hub_pos = w.objects().nth(hub as usize).map(|o| o.info.pos).unwrap_or_default();
+    let items = cfg.item_count();
+    match (cfg.task, cfg.layout) {
+        (Task::Foraging, Layout::Reference) => {
+            w.add_object(ObjectKind::Sites, cfg.site, BIG_RADIUS);
+            for _ in 0..items {
+                w.add_object(ObjectKind::Food, cfg.site, BIG_RADIUS);
+            }
+        }
+        (Task::Foraging, Layout::Paper) => {
+            let mut sites = Vec::new();
+            for _ in 0..cfg.sites {
+                let id = place_ring(w, rng, ObjectKind::Sites, cfg.site_distance)?;
+                sites.push(w.objects().nth(id as usize).map(|o| o.info.pos).unwrap_or_default());
+            }
+            for _ in 0..items {
+                let s = sites[rng.random_range(0..sites.len())];
+                w.add_object(ObjectKind::Food, s, BIG_RADIUS);
+            }
+        }
+        (Task::Nest, _) => {
+            for _ in 0..items {
+                w.add_object(ObjectKind::Debris, hub_pos, BIG_RADIUS);
+            }
+            for _ in 0..cfg.boundaries {
+                place_ring(w, rng, ObjectKind::Boundary, cfg.boundary_distance)?;
+            }
+        }
+    }
+    for _ in 0..cfg.obstacles {
+        if place_obstacle(w, rng, cfg.obstacle_radius).is_none() {
+            return Err(ConfigError::Invalid {
+                field: "obstacles",
+                reason: "no free place for another obstacle".into(),
+            });
+        }
+    }
+    let g = w.geometry();
+    for _ in 0..cfg.agents {
+        let pos = match cfg.start() {
+            Start::Hub => hub_pos,
+            Start::Random => Pos::new(
+                rng.random_range(-g.half_w()..g.half_w()),
+                rng.random_range(-g.half_h()..g.half_h()),
+            ),
+        };
+        let heading = rng.random::<f64>() * std::f64::consts::TAU;
+        w.add_body(pos, heading);
+    }
+    Ok(())
+}

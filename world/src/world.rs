@@ -1,0 +1,774 @@
+//! Authoritative world state: objects, agent bodies, grid registration, percepts,
+//! intent resolution, task percentage and scheduled perturbations.
+use crate::config::{ConfigError, Task, WorldConfig};
+use geese_proto::geometry::step_destination;
+use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
+use geese_proto::{
+    AgentId, AgentPublic, CellIdx, Geometry, GeneticTrigger, Intent, ObjectId, ObjectInfo,
+    ObjectKind, Op, Perturbation, Percept, Pos, Regime, StepReport,
+};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Agent body constants (REFERENCE §1.5).
+pub const AGENT_RADIUS: i32 = 3;
+pub const AGENT_WEIGHT: i32 = 5;
+pub const AGENT_FORCE: i32 = 10;
+pub const AGENT_CAPACITY: i32 = 10;
+
+/// Step length of an agent carrying `carried_weight` (force / total weight).
+pub fn speed(carried_weight: i32) -> f64 {
+    AGENT_FORCE as f64 / (AGENT_WEIGHT + carried_weight) as f64
+}
+
+/// A non-agent object and its bookkeeping.
+#[derive(Clone, Debug)]
+pub struct Object {
+    pub info: ObjectInfo,
+    /// Registered in the grid (false while carried or once delivered).
+    pub registered: bool,
+    /// Delivered objects (hub, boundary).
+    pub dropped: Vec<ObjectId>,
+}
+
+/// An agent's body as the world keeps it.
+#[derive(Clone, Debug)]
+pub struct Body {
+    pub id: AgentId,
+    pub pos: Pos,
+    pub heading: f64,
+    pub carrying: Vec<ObjectId>,
+    pub live: bool,
+    pub learning: bool,
+}
+
+#[derive(Clone, Debug, Default)]
+struct Cell {
+    objects: Vec<ObjectId>,
+    agents: Vec<AgentId>,
+}
+
+/// Why an intent or op was refused.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum Rejection {
+    #[error("intent for step {got}, world is at step {expected}")]
+    WrongStep { got: u64, expected: u64 },
+    #[error("agent {0} does not exist")]
+    NoSuchAgent(AgentId),
+    #[error("agent {0} is not live")]
+    Dead(AgentId),
+    #[error("move to {to:?} is not one step along heading {heading}")]
+    BadMove { to: Pos, heading: f64 },
+    #[error("move into a blocked cell")]
+    Blocked,
+    #[error("object {0} is gone (picked by an agent with a lower id)")]
+    NotHere(ObjectId),
+    #[error("object {0} lies outside the agent's cell")]
+    OutsideCell(ObjectId),
+    #[error("object {0} cannot be picked up")]
+    NotCarryable(ObjectId),
+    #[error("object {0} is not carried")]
+    NotCarried(ObjectId),
+    #[error("heading is not finite")]
+    BadHeading,
+}
+
+pub struct World {
+    cfg: WorldConfig,
+    geom: Geometry,
+    objects: Vec<Object>,
+    bodies: Vec<Body>,
+    cells: Vec<Cell>,
+    hub: ObjectId,
+    /// Current step (the step whose percepts are out / whose intents are awaited).
+    step: u64,
+    regime: Regime,
+    schedule: Vec<(u64, Perturbation)>,
+    perturb_rng: ChaCha8Rng,
+    total_item_weight: i32,
+    delivered_weight: i32,
+}
+
+impl World {
+    /// Build the world of `cfg` for run seed `seed` (REFERENCE §1.4).
+    pub fn new(cfg: WorldConfig, seed: u64) -> Result<Self, ConfigError> {
+        let geom = cfg.validate()?;
+        let mut w = World {
+            geom,
+            objects: Vec::new(),
+            bodies: Vec::new(),
+            cells: vec![Cell::default(); geom.cell_count()],
+            hub: 0,
+            step: 1,
+            regime: Regime::default(),
+            schedule: Vec::new(),
+            perturb_rng: ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Perturb)),
+            total_item_weight: 0,
+            delivered_weight: 0,
+            cfg,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Layout));
+        crate::layout::build(&mut w, &mut rng)?;
+        Ok(w)
+    }
+
+    pub fn config(&self) -> &WorldConfig {
+        &self.cfg
+    }
+    pub fn geometry(&self) -> Geometry {
+        self.geom
+    }
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+    pub fn regime(&self) -> Regime {
+        self.regime
+    }
+    /// Set the regime in force (initial IP, LT switch) before the run starts.
+    pub fn set_regime(&mut self, r: Regime) {
+        self.regime = r;
+    }
+    pub fn hub(&self) -> ObjectInfo {
+        self.objects[self.hub as usize].info
+    }
+    pub fn objects(&self) -> impl Iterator<Item = &Object> {
+        self.objects.iter()
+    }
+    pub fn bodies(&self) -> &[Body] {
+        &self.bodies
+    }
+    pub fn live_agents(&self) -> u32 {
+        self.bodies.iter().filter(|b| b.live).count() as u32
+    }
+
+    // ---------------------------------------------------------------- construction
+
+    pub(crate) fn add_object(&mut self, kind: ObjectKind, pos: Pos, radius: i32) -> ObjectId {
+        let (weight, capacity) = match kind {
+            ObjectKind::Food => (radius / 2, radius / 2),
+            ObjectKind::Debris => (5, radius / 2),
+            _ => (0, 0),
+        };
+        let id = self.objects.len() as ObjectId;
+        let info = ObjectInfo { id, kind, pos, radius, weight, capacity };
+        self.objects.push(Object { info, registered: false, dropped: Vec::new() });
+        self.register_object(id);
+        if kind.carryable() {
+            self.total_item_weight += weight;
+        }
+        if kind == ObjectKind::Hub && self.objects.iter().filter(|o| o.info.kind == kind).count() == 1 {
+            self.hub = id;
+        }
+        id
+    }
+
+    pub(crate) fn add_body(&mut self, pos: Pos, heading: f64) {
+        let id = self.bodies.len() as AgentId;
+        self.bodies.push(Body { id, pos, heading, carrying: Vec::new(), live: true, learning: true });
+        self.register_agent(id);
+    }
+
+    fn register_object(&mut self, id: ObjectId) {
+        let o = &mut self.objects[id as usize];
+        o.registered = true;
+        let (p, r) = (o.info.pos, o.info.radius);
+        let cells = &mut self.cells;
+        self.geom.for_each_neighbourhood_cell(p, r, |c| cells[c as usize].objects.push(id));
+    }
+
+    fn deregister_object(&mut self, id: ObjectId) {
+        let o = &mut self.objects[id as usize];
+        o.registered = false;
+        let (p, r) = (o.info.pos, o.info.radius);
+        let cells = &mut self.cells;
+        self.geom.for_each_neighbourhood_cell(p, r, |c| {
+            cells[c as usize].objects.retain(|&x| x != id);
+        });
+    }
+
+    fn register_agent(&mut self, id: AgentId) {
+        let p = self.bodies[id as usize].pos;
+        let cells = &mut self.cells;
+        self.geom.for_each_neighbourhood_cell(p, AGENT_RADIUS, |c| {
+            let v = &mut cells[c as usize].agents;
+            let at = v.partition_point(|&a| a < id);
+            v.insert(at, id);
+        });
+    }
+
+    fn deregister_agent(&mut self, id: AgentId) {
+        let p = self.bodies[id as usize].pos;
+        let cells = &mut self.cells;
+        self.geom.for_each_neighbourhood_cell(p, AGENT_RADIUS, |c| {
+            cells[c as usize].agents.retain(|&x| x != id);
+        });
+    }
+
+    /// Non-agent objects registered in `cell`.
+    pub fn objects_in(&self, cell: CellIdx) -> impl Iterator<Item = &ObjectInfo> {
+        self.cells[cell as usize].objects.iter().map(|&id| &self.objects[id as usize].info)
+    }
+
+    /// Is any non-agent object registered in any cell of N(p, r)?
+    pub(crate) fn area_has_objects(&self, p: Pos, r: i32) -> bool {
+        let mut any = false;
+        self.geom.for_each_neighbourhood_cell(p, r, |c| {
+            any |= !self.cells[c as usize].objects.is_empty();
+        });
+        any
+    }
+
+    fn cell_blocked(&self, cell: CellIdx) -> bool {
+        self.objects_in(cell).any(|o| !o.kind.passable())
+    }
+
+    // ---------------------------------------------------------------- percepts
+
+    /// The percepts of step `self.step`, one per cell holding a live agent's centre,
+    /// in cell order.
+    pub fn percepts(&self) -> Vec<Percept> {
+        let mut cells: Vec<CellIdx> =
+            self.bodies.iter().filter(|b| b.live).map(|b| self.geom.cell_of(b.pos)).collect();
+        cells.sort_unstable();
+        cells.dedup();
+        cells.into_iter().map(|c| self.percept(c)).collect()
+    }
+
+    /// The percept of one cell.
+    pub fn percept(&self, cell: CellIdx) -> Percept {
+        let here = &self.cells[cell as usize];
+        let objects: Vec<ObjectInfo> = self.objects_in(cell).copied().collect();
+        // Impassable objects a move or probe from this cell can meet: cells within
+        // ceil(3 / GS) columns and rows (at least one).
+        let reach = ((AGENT_RADIUS + self.geom.grid - 1) / self.geom.grid).max(1);
+        let (c0, r0) = self.geom.cell_col_row(cell);
+        let mut nearby_impassable: Vec<ObjectInfo> = Vec::new();
+        for r in (r0 - reach).max(0)..=(r0 + reach).min(self.geom.rows() - 1) {
+            for c in (c0 - reach).max(0)..=(c0 + reach).min(self.geom.cols() - 1) {
+                let idx = (r * self.geom.cols() + c) as CellIdx;
+                if idx == cell {
+                    continue;
+                }
+                for o in self.objects_in(idx) {
+                    if !o.kind.passable()
+                        && !objects.iter().any(|x| x.id == o.id)
+                        && !nearby_impassable.iter().any(|x| x.id == o.id)
+                    {
+                        nearby_impassable.push(*o);
+                    }
+                }
+            }
+        }
+        let agents = here.agents.iter().map(|&id| self.public(id)).collect();
+        Percept { step: self.step, cell, regime: self.regime, objects, nearby_impassable, agents }
+    }
+
+    fn public(&self, id: AgentId) -> AgentPublic {
+        let b = &self.bodies[id as usize];
+        AgentPublic {
+            id,
+            pos: b.pos,
+            heading: b.heading,
+            carrying: b.carrying.iter().map(|&o| self.objects[o as usize].info).collect(),
+            live: b.live,
+            learning: b.learning,
+        }
+    }
+
+    // ---------------------------------------------------------------- resolution
+
+    /// Resolve step `self.step`: `intents[i]` is agent i's intent (`None` if it did not
+    /// arrive). Applies them in agent-id order, runs scheduled perturbations, advances the
+    /// step counter and returns the step report.
+    pub fn resolve(&mut self, intents: &[Option<Intent>]) -> StepReport {
+        let mut rep = StepReport { step: self.step, ..Default::default() };
+        let mut lt = Vec::new();
+        let mut digest = Fnv64::default();
+        for id in 0..self.bodies.len() as AgentId {
+            if !self.bodies[id as usize].live {
+                continue;
+            }
+            let Some(intent) = intents.get(id as usize).and_then(Option::as_ref) else {
+                rep.missing_intents += 1;
+                continue;
+            };
+            if intent.agent != id {
+                rep.rejected += 1;
+                continue;
+            }
+            match self.apply(intent) {
+                Ok(n) => rep.rejected += n,
+                Err(_) => rep.rejected += 1,
+            }
+            let s = &intent.stats;
+            if s.lt_rate > 0 {
+                lt.push(s.lt_rate as f64);
+            }
+            match s.genetic {
+                GeneticTrigger::Storage => rep.genetic_steps += 1,
+                GeneticTrigger::Stagnation => rep.stagnation_steps += 1,
+                GeneticTrigger::None => {}
+            }
+            rep.genes_lost += s.genes_lost;
+            digest.write_u32(id);
+            digest.write_u64(s.gene_digest);
+        }
+        if !lt.is_empty() {
+            let n = lt.len() as f64;
+            let mean = lt.iter().sum::<f64>() / n;
+            let var = lt.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+            rep.lt_mean = round2(mean);
+            rep.lt_std = round2(var.sqrt());
+        }
+        for b in &self.bodies {
+            digest.write_u32(b.id);
+            digest.write_i32(b.pos.x);
+            digest.write_i32(b.pos.y);
+            digest.write_u64(b.heading.to_bits());
+            for &o in &b.carrying {
+                digest.write_u32(o);
+            }
+        }
+        rep.digest = digest.finish();
+        rep.task_pct = self.task_pct();
+        self.run_hooks();
+        rep.live_agents = self.live_agents();
+        self.step += 1;
+        rep
+    }
+
+    /// Apply one intent; returns how many of its ops were refused. An error refuses the
+    /// whole intent.
+    pub fn apply(&mut self, intent: &Intent) -> Result<u32, Rejection> {
+        if intent.step != self.step {
+            return Err(Rejection::WrongStep { got: intent.step, expected: self.step });
+        }
+        let id = intent.agent;
+        let b = self.bodies.get(id as usize).ok_or(Rejection::NoSuchAgent(id))?;
+        if !b.live {
+            return Err(Rejection::Dead(id));
+        }
+        if !intent.heading.is_finite() {
+            return Err(Rejection::BadHeading);
+        }
+        let mut refused = 0;
+        for op in &intent.ops {
+            let r = match *op {
+                Op::Move { to, heading } => self.apply_move(id, to, heading),
+                Op::Pick { object } => self.apply_pick(id, object),
+                Op::Drop { object } => self.apply_drop(id, object),
+            };
+            match r {
+                Ok(()) => {}
+                // A lost race for an item, or a drop the cell refuses, is not
+                // misbehaviour: the agent learns the outcome from its next percept.
+                Err(Rejection::Blocked) | Err(Rejection::NotHere(_)) => {}
+                Err(_) => refused += 1,
+            }
+        }
+        self.bodies[id as usize].heading = intent.heading.rem_euclid(std::f64::consts::TAU);
+        Ok(refused)
+    }
+
+    fn carried_weight(&self, id: AgentId) -> i32 {
+        self.bodies[id as usize].carrying.iter().map(|&o| self.objects[o as usize].info.weight).sum()
+    }
+
+    fn apply_move(&mut self, id: AgentId, to: Pos, heading: f64) -> Result<(), Rejection> {
+        if !heading.is_finite() {
+            return Err(Rejection::BadHeading);
+        }
+        let from = self.bodies[id as usize].pos;
+        let (dest, new_heading) =
+            step_destination(&self.geom, from, heading, speed(self.carried_weight(id)));
+        if dest != to {
+            return Err(Rejection::BadMove { to, heading });
+        }
+        let (old_c, new_c) = (self.geom.cell_of(from), self.geom.cell_of(dest));
+        if old_c != new_c && self.cell_blocked(new_c) {
+            return Err(Rejection::Blocked);
+        }
+        if old_c != new_c || AGENT_RADIUS > self.geom.grid {
+            self.deregister_agent(id);
+            self.bodies[id as usize].pos = dest;
+            self.register_agent(id);
+        } else {
+            self.bodies[id as usize].pos = dest;
+        }
+        let b = &mut self.bodies[id as usize];
+        b.heading = new_heading;
+        for &o in &b.carrying {
+            self.objects[o as usize].info.pos = dest;
+        }
+        Ok(())
+    }
+
+    fn apply_pick(&mut self, id: AgentId, object: ObjectId) -> Result<(), Rejection> {
+        let o = self.objects.get(object as usize).ok_or(Rejection::NotHere(object))?;
+        if !o.info.kind.carryable() {
+            return Err(Rejection::NotCarryable(object));
+        }
+        let kind = o.info.kind;
+        let cell = self.geom.cell_of(self.bodies[id as usize].pos);
+        let here = &self.cells[cell as usize].objects;
+        // Simultaneous steps: agents that saw the same item at the same time all ask for
+        // it. The first (lowest id) gets it; later ones get the next equivalent item of
+        // the cell, as they would have in the reference's sequential step, where the item
+        // was already gone when they looked.
+        let object = if here.contains(&object) {
+            object
+        } else if o.registered {
+            return Err(Rejection::OutsideCell(object));
+        } else {
+            match here.iter().copied().find(|&x| self.objects[x as usize].info.kind == kind) {
+                Some(x) => x,
+                None => return Err(Rejection::NotHere(object)),
+            }
+        };
+        let o = &self.objects[object as usize];
+        // IsSingleCarry: free capacity must exceed the item's weight.
+        let used: i32 = self.bodies[id as usize]
+            .carrying
+            .iter()
+            .map(|&c| self.objects[c as usize].info.capacity)
+            .sum();
+        if AGENT_CAPACITY - used <= o.info.weight {
+            return Err(Rejection::NotCarryable(object));
+        }
+        self.deregister_object(object);
+        self.bodies[id as usize].carrying.push(object);
+        Ok(())
+    }
+
+    fn apply_drop(&mut self, id: AgentId, object: ObjectId) -> Result<(), Rejection> {
+        let b = &self.bodies[id as usize];
+        let Some(slot) = b.carrying.iter().position(|&o| o == object) else {
+            return Err(Rejection::NotCarried(object));
+        };
+        let pos = b.pos;
+        let cell = self.geom.cell_of(pos);
+        let kind = self.objects[object as usize].info.kind;
+        let has = |k: ObjectKind| self.objects_in(cell).any(|o| o.kind == k);
+        let first = |k: ObjectKind| self.objects_in(cell).find(|o| o.kind == k).map(|o| o.id);
+        // Final (type-aware) drop rules, REFERENCE §2.4.
+        let target: Option<ObjectId> = if kind == ObjectKind::Food {
+            if has(ObjectKind::Boundary) || has(ObjectKind::Obstacles) {
+                return Err(Rejection::Blocked);
+            }
+            if has(ObjectKind::Hub) && has(ObjectKind::Debris) {
+                return Err(Rejection::Blocked);
+            }
+            first(ObjectKind::Hub)
+        } else {
+            if has(ObjectKind::Hub) || has(ObjectKind::Obstacles) {
+                return Err(Rejection::Blocked);
+            }
+            first(ObjectKind::Boundary)
+        };
+        self.bodies[id as usize].carrying.remove(slot);
+        self.objects[object as usize].info.pos = pos;
+        match target {
+            Some(t) => {
+                self.objects[t as usize].dropped.push(object);
+                let w = self.objects[object as usize].info.weight;
+                if (kind == ObjectKind::Food && self.cfg.task == Task::Foraging)
+                    || (kind == ObjectKind::Debris && self.cfg.task == Task::Nest)
+                {
+                    self.delivered_weight += w;
+                }
+            }
+            None => self.register_object(object),
+        }
+        Ok(())
+    }
+
+    /// Task percentage (REFERENCE §1.7), rounded to 2 decimals.
+    pub fn task_pct(&self) -> f64 {
+        if self.total_item_weight == 0 {
+            return 0.0;
+        }
+        round2(100.0 * self.delivered_weight as f64 / self.total_item_weight as f64)
+    }
+
+    // ---------------------------------------------------------------- perturbations
+
+    /// Schedule `change` to happen right after step `at_step` is resolved (the reference
+    /// code's hook timing), so it is in force from step `at_step + 1`. A change scheduled
+    /// for step 0 applies at once.
+    pub fn schedule(&mut self, at_step: u64, change: Perturbation) {
+        if at_step < self.step {
+            self.perturb(change);
+        } else {
+            self.schedule.push((at_step, change));
+        }
+    }
+
+    fn run_hooks(&mut self) {
+        let now = self.step;
+        let due: Vec<Perturbation> = {
+            let mut due = Vec::new();
+            self.schedule.retain(|(t, p)| {
+                if *t == now {
+                    due.push(p.clone());
+                    false
+                } else {
+                    true
+                }
+            });
+            due
+        };
+        for p in due {
+            self.perturb(p);
+        }
+    }
+
+    /// Apply a perturbation now.
+    pub fn perturb(&mut self, change: Perturbation) {
+        match change {
+            Perturbation::AddObstacles { count, radius } => {
+                let mut rng = std::mem::replace(&mut self.perturb_rng, ChaCha8Rng::seed_from_u64(0));
+                for _ in 0..count {
+                    if crate::layout::place_obstacle(self, &mut rng, radius).is_none() {
+                        tracing_free_warn("no free place for an obstacle");
+                    }
+                }
+                self.perturb_rng = rng;
+            }
+            Perturbation::SetIp(ip) => self.regime.ip = ip.clamp(0.0, 1.0),
+            Perturbation::SetLateralTransfer(on) => self.regime.lateral_transfer = on,
+            Perturbation::SetGeneLoss(p) => self.regime.gene_loss = p.clamp(0.0, 1.0),
+            Perturbation::KillFraction(f) => {
+                let mut live: Vec<AgentId> =
+                    self.bodies.iter().filter(|b| b.live).map(|b| b.id).collect();
+                let k = ((f.clamp(0.0, 1.0) * live.len() as f64).floor()) as usize;
+                for i in 0..k {
+                    let j = self.perturb_rng.random_range(i..live.len());
+                    live.swap(i, j);
+                }
+                for &id in &live[..k] {
+                    self.kill(id);
+                }
+            }
+        }
+    }
+
+    /// Mark an agent dead: its body idles and whatever it carried is dropped where it
+    /// stands (re-registered in the grid).
+    pub fn kill(&mut self, id: AgentId) {
+        let Some(b) = self.bodies.get_mut(id as usize) else { return };
+        if !b.live {
+            return;
+        }
+        b.live = false;
+        let pos = b.pos;
+        let carried = std::mem::take(&mut b.carrying);
+        for o in carried {
+            self.objects[o as usize].info.pos = pos;
+            self.register_object(o);
+        }
+    }
+
+    /// Put an agent's body somewhere (scenario set-up and tests).
+    pub fn place_agent(&mut self, id: AgentId, pos: Pos, heading: f64) {
+        if (id as usize) < self.bodies.len() && self.geom.contains(pos) {
+            self.deregister_agent(id);
+            self.bodies[id as usize].pos = pos;
+            self.bodies[id as usize].heading = heading;
+            self.register_agent(id);
+        }
+    }
+
+    /// Bring a dead agent back (a restarted process with the same id).
+    pub fn revive(&mut self, id: AgentId) {
+        if let Some(b) = self.bodies.get_mut(id as usize) {
+            b.live = true;
+        }
+    }
+}
+
+/// The world crate stays free of a logging dependency; perturbations that cannot be
+/// placed are rare and reported through stderr in debug builds only.
+fn tracing_free_warn(msg: &str) {
+    if cfg!(debug_assertions) {
+        eprintln!("geese-world: {msg}");
+    }
+}
+
+pub fn round2(v: f64) -> f64 {
+    (v * 100.0).round() / 100.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{Layout, Start};
+    use geese_proto::AgentStats;
+
+    fn world(task: Task, agents: u32) -> World {
+        let cfg = WorldConfig { task, agents, items: Some(100), start: Some(Start::Hub), ..Default::default() };
+        World::new(cfg, 7).unwrap()
+    }
+
+    fn intent(w: &World, agent: AgentId, heading: f64, ops: Vec<Op>) -> Intent {
+        Intent { step: w.step(), agent, heading, ops, stats: AgentStats::default() }
+    }
+
+    #[test]
+    fn reference_foraging_layout() {
+        let w = World::new(WorldConfig::default(), 1).unwrap();
+        let g = w.geometry();
+        assert_eq!(w.hub().pos, Pos::new(0, 0));
+        let site_cell = g.cell_of(Pos::new(30, 30));
+        let food = w.objects_in(site_cell).filter(|o| o.kind == ObjectKind::Food).count();
+        assert_eq!(food, 100);
+        assert_eq!(w.bodies().len(), 100);
+        assert!(w.bodies().iter().all(|b| b.pos.x >= -50 && b.pos.x < 50 && b.pos.y >= -50 && b.pos.y < 50));
+        assert_eq!(w.task_pct(), 0.0);
+    }
+
+    #[test]
+    fn paper_layout_sites_at_distance_30_and_nest_boundaries() {
+        let cfg = WorldConfig { layout: Layout::Paper, sites: 3, ..Default::default() };
+        let w = World::new(cfg, 3).unwrap();
+        let sites: Vec<_> = w.objects().filter(|o| o.info.kind == ObjectKind::Sites).collect();
+        assert_eq!(sites.len(), 3);
+        for s in &sites {
+            let d = ((s.info.pos.x.pow(2) + s.info.pos.y.pow(2)) as f64).sqrt();
+            assert!((28.0..=30.0).contains(&d), "site at {:?}", s.info.pos);
+        }
+        assert!(w.bodies().iter().all(|b| b.pos == Pos::new(0, 0)));
+        let n = World::new(WorldConfig { task: Task::Nest, ..Default::default() }, 3).unwrap();
+        assert_eq!(n.objects().filter(|o| o.info.kind == ObjectKind::Boundary).count(), 5);
+        assert_eq!(n.objects_in(55).filter(|o| o.kind == ObjectKind::Debris).count(), 100);
+    }
+
+    #[test]
+    fn same_seed_same_world_different_seed_different_world() {
+        let a = World::new(WorldConfig::default(), 5).unwrap();
+        let b = World::new(WorldConfig::default(), 5).unwrap();
+        let c = World::new(WorldConfig::default(), 6).unwrap();
+        let pos = |w: &World| w.bodies().iter().map(|b| b.pos).collect::<Vec<_>>();
+        assert_eq!(pos(&a), pos(&b));
+        assert_ne!(pos(&a), pos(&c));
+    }
+
+    #[test]
+    fn moves_are_validated_and_applied() {
+        let mut w = world(Task::Foraging, 2);
+        w.place_agent(0, Pos::new(0, 0), 0.0);
+        let ok = intent(&w, 0, 0.0, vec![Op::Move { to: Pos::new(2, 0), heading: 0.0 }]);
+        let teleport = intent(&w, 1, 0.0, vec![Op::Move { to: Pos::new(20, 0), heading: 0.0 }]);
+        let rep = w.resolve(&[Some(ok), Some(teleport)]);
+        assert_eq!(rep.rejected, 1);
+        assert_eq!(w.bodies()[0].pos, Pos::new(2, 0));
+        assert_eq!(w.bodies()[1].pos, Pos::new(0, 0));
+    }
+
+    #[test]
+    fn obstacles_block_entry_not_exit() {
+        let mut w = world(Task::Foraging, 1);
+        w.perturb(Perturbation::AddObstacles { count: 1, radius: 10 });
+        let obs = w.objects().find(|o| o.info.kind == ObjectKind::Obstacles).unwrap().info;
+        let g = w.geometry();
+        let (x0, y0, _, _) = g.neighbourhood_box(obs.pos, obs.radius);
+        // Stand just left of the obstacle's cell, facing it.
+        w.place_agent(0, Pos::new(x0 - 1, y0 + 5), 0.0);
+        let to = Pos::new(x0 + 1, y0 + 5);
+        let i = intent(&w, 0, 0.0, vec![Op::Move { to, heading: 0.0 }]);
+        w.resolve(&[Some(i)]);
+        assert_eq!(w.bodies()[0].pos, Pos::new(x0 - 1, y0 + 5));
+    }
+
+    #[test]
+    fn pick_drop_at_hub_counts_and_races_resolve_by_id() {
+        let mut w = world(Task::Foraging, 3);
+        let site = Pos::new(30, 30);
+        let food = w.objects_in(w.geometry().cell_of(site)).find(|o| o.kind == ObjectKind::Food).unwrap().id;
+        for id in 0..3 {
+            w.place_agent(id, site, 0.0);
+        }
+        // All three ask for the same item: each gets one.
+        let picks: Vec<_> = (0..3).map(|id| Some(intent(&w, id, 0.0, vec![Op::Pick { object: food }]))).collect();
+        w.resolve(&picks);
+        assert!(w.bodies().iter().all(|b| b.carrying.len() == 1));
+        assert_eq!(w.bodies()[0].carrying[0], food);
+        // A second pick while carrying is refused (IsSingleCarry).
+        let again = intent(&w, 0, 0.0, vec![Op::Pick { object: food + 5 }]);
+        let rep = w.resolve(&[Some(again), None, None]);
+        assert_eq!(w.bodies()[0].carrying.len(), 1);
+        assert_eq!(rep.missing_intents, 2);
+        // Carry to the hub and drop: 1 %.
+        w.place_agent(0, Pos::new(1, 1), 0.0);
+        let carried = w.bodies()[0].carrying[0];
+        let d = intent(&w, 0, 0.0, vec![Op::Drop { object: carried }]);
+        let rep = w.resolve(&[Some(d), None, None]);
+        assert_eq!(rep.task_pct, 1.0);
+        assert!(w.bodies()[0].carrying.is_empty());
+    }
+
+    #[test]
+    fn pick_outside_cell_and_acting_for_others_are_rejected() {
+        let mut w = world(Task::Foraging, 2);
+        let site = Pos::new(30, 30);
+        let food = w.objects_in(w.geometry().cell_of(site)).find(|o| o.kind == ObjectKind::Food).unwrap().id;
+        let far = intent(&w, 0, 0.0, vec![Op::Pick { object: food }]);
+        let mut impostor = intent(&w, 0, 0.0, vec![]);
+        impostor.agent = 0; // sent in agent 1's slot
+        let rep = w.resolve(&[Some(far), Some(impostor)]);
+        assert_eq!(rep.rejected, 2);
+        assert!(w.bodies()[0].carrying.is_empty());
+    }
+
+    #[test]
+    fn nest_debris_counts_only_in_boundary() {
+        let mut w = world(Task::Nest, 1);
+        let debris = w.objects_in(55).find(|o| o.kind == ObjectKind::Debris).unwrap().id;
+        w.place_agent(0, Pos::new(0, 0), 0.0);
+        w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Pick { object: debris }]))]);
+        // Dropping at the hub is refused, elsewhere it stays on the floor.
+        w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Drop { object: debris }]))]);
+        assert_eq!(w.bodies()[0].carrying.len(), 1);
+        let b = w.objects().find(|o| o.info.kind == ObjectKind::Boundary).unwrap().info.pos;
+        w.place_agent(0, b, 0.0);
+        let rep = w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Drop { object: debris }]))]);
+        assert_eq!(rep.task_pct, 1.0);
+    }
+
+    #[test]
+    fn percepts_cover_live_agents_and_nearby_obstacles() {
+        let mut w = world(Task::Foraging, 4);
+        w.perturb(Perturbation::AddObstacles { count: 3, radius: 10 });
+        let ps = w.percepts();
+        assert_eq!(ps.len(), 1); // everyone at the hub
+        assert_eq!(ps[0].agents.len(), 4);
+        assert!(ps[0].objects.iter().any(|o| o.kind == ObjectKind::Hub));
+        w.kill(2);
+        assert_eq!(w.live_agents(), 3);
+        let rep = w.resolve(&[None, None, None, None]);
+        assert_eq!(rep.missing_intents, 3);
+    }
+
+    #[test]
+    fn kill_drops_carried_items_where_the_agent_stands() {
+        let mut w = world(Task::Foraging, 1);
+        let site = Pos::new(30, 30);
+        let cell = w.geometry().cell_of(site);
+        let food = w.objects_in(cell).find(|o| o.kind == ObjectKind::Food).unwrap().id;
+        w.place_agent(0, site, 0.0);
+        w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Pick { object: food }]))]);
+        w.place_agent(0, Pos::new(-20, -20), 0.0);
+        w.kill(0);
+        let here = w.geometry().cell_of(Pos::new(-20, -20));
+        assert!(w.objects_in(here).any(|o| o.id == food));
+    }
+
+    #[test]
+    fn scheduled_perturbations_fire_after_their_step() {
+        let mut w = world(Task::Foraging, 1);
+        w.schedule(2, Perturbation::SetLateralTransfer(false));
+        w.resolve(&[None]);
+        assert!(w.regime().lateral_transfer);
+        w.resolve(&[None]);
+        assert!(!w.regime().lateral_transfer);
+    }
+}
