@@ -1,1 +1,25 @@
 //! Shared helpers for the integration tests.
+use std::path::PathBuf;
+use std::process::Command;
+
+/// Path of a workspace binary built in the same profile as this test, building it first
+/// if needed (`cargo test` only builds a package's binaries for that package's own
+/// integration tests).
+pub fn bin_path(package: &str, bin: &str) -> PathBuf {
+    // The test executable lives in <target>/<profile>/deps/.
+    let exe = std::env::current_exe().expect("test executable path");
+    let profile_dir = exe.parent().and_then(|d| d.parent()).expect("target profile dir").to_path_buf();
+    let path = profile_dir.join(bin);
+    let release = profile_dir.file_name().is_some_and(|n| n == "release");
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let mut cmd = Command::new(cargo);
+    cmd.args(["build", "-q", "-p", package, "--bin", bin]);
+    if release {
+        cmd.arg("--release");
+    }
+    // The workspace root is the parent of this crate's manifest dir.
+    cmd.current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    let status = cmd.status().expect("run cargo build");
+    assert!(status.success(), "building {bin} failed");
+    path
+}

@@ -4,7 +4,7 @@ use geese_proto::{Geometry, Pos};
 use serde::{Deserialize, Serialize};
 
 /// Which task the world is laid out for.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum Task {
     #[default]

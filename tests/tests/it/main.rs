@@ -1,1 +1,2 @@
-//! Integration tests.
+//! Cross-crate integration tests (one test binary).
+mod core;

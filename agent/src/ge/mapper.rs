@@ -1,0 +1,419 @@
+//! The linear genome → phenotype mapper of PonyGE2 (`map_ind_from_genome`,
+//! REFERENCE.md §5.4).
+//!
+//! Why this exists: every offspring of every genetic step is mapped (twice: after
+//! crossover for its used-codon count and depth, after mutation for its phenotype), so the
+//! mapper must be exact *and* cheap. [`Mapper`] keeps its symbol stack between calls and
+//! can either skip the phenotype ([`Mapper::map_stats`]) or write it into a caller-owned
+//! buffer ([`Mapper::map_into`]); [`map_genome`] is the convenient allocating form.
+//!
+//! The PonyGE2 deque (pop front, push children onto the front in order) is a stack with
+//! the children pushed in reverse; wrapping and the depth cut-off are reproduced
+//! literally, including their quirks (the wrap counter is advanced on every iteration
+//! in which `used` is a positive multiple of the genome length while a non-terminal is
+//! pending, and a symbol deeper than the limit only invalidates the individual if further
+//! symbols remain).
+
+use super::grammar::{fast_mod, Grammar, Symbol};
+
+/// Limits of one mapping (PonyGE2 `MAX_TREE_DEPTH`, `MAX_WRAPS`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MapLimits {
+    /// Derivation-tree depth limit; 0 = no limit (PonyGE2 semantics).
+    pub max_tree_depth: usize,
+    /// Number of genome wraps allowed; 0 = none.
+    pub max_wraps: usize,
+}
+
+impl Default for MapLimits {
+    fn default() -> Self {
+        MapLimits { max_tree_depth: 10, max_wraps: 0 }
+    }
+}
+
+/// Outcome of a mapping without the phenotype string.
+///
+/// For an invalid mapping `used_codons` and `depth` are the values at the point mapping
+/// stopped (PonyGE2 reports them as undefined); they are diagnostic only.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MapStats {
+    pub valid: bool,
+    pub used_codons: usize,
+    pub depth: usize,
+}
+
+/// Outcome of a mapping with the phenotype (`None` when invalid).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Mapping {
+    pub valid: bool,
+    pub used_codons: usize,
+    pub depth: usize,
+    pub phenotype: Option<String>,
+}
+
+/// Reusable mapper state (the symbol stack), so repeated mappings do not allocate.
+#[derive(Debug, Clone, Default)]
+pub struct Mapper {
+    stack: Vec<(Symbol, u32)>,
+}
+
+impl Mapper {
+    pub fn new() -> Mapper {
+        Mapper { stack: Vec::with_capacity(64) }
+    }
+
+    /// Map without building the phenotype.
+    pub fn map_stats(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> MapStats {
+        self.run(grammar, genome, limits, None)
+    }
+
+    /// Map and write the phenotype into `out` (cleared first). After an invalid mapping
+    /// `out` holds the partial output; ignore it.
+    pub fn map_into(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, out: &mut String) -> MapStats {
+        out.clear();
+        self.run(grammar, genome, limits, Some(out))
+    }
+
+    /// Map and return an owned [`Mapping`].
+    pub fn map(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> Mapping {
+        let mut out = String::new();
+        let st = self.map_into(grammar, genome, limits, &mut out);
+        Mapping {
+            valid: st.valid,
+            used_codons: st.used_codons,
+            depth: st.depth,
+            phenotype: st.valid.then_some(out),
+        }
+    }
+
+    fn run(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, mut out: Option<&mut String>) -> MapStats {
+        let n = genome.len();
+        if n == 0 {
+            // PonyGE2 would divide by zero here; an empty genome maps to nothing.
+            return MapStats { valid: false, used_codons: 0, depth: 1 };
+        }
+        let stack = &mut self.stack;
+        stack.clear();
+        stack.push((Symbol::NonTerminal(grammar.start()), 1));
+        let mut pending_nts = 1usize;
+        let mut used = 0usize;
+        let mut wraps: i64 = -1;
+        let max_wraps = limits.max_wraps as i64;
+        let depth_limit = limits.max_tree_depth;
+        let mut max_depth = 1usize;
+        let rules = grammar.rules();
+
+        while wraps < max_wraps {
+            let Some(&(sym, d)) = stack.last() else { break };
+            if depth_limit != 0 && max_depth > depth_limit {
+                break;
+            }
+            if used > 0 && used % n == 0 && pending_nts > 0 {
+                wraps += 1;
+            }
+            stack.pop();
+            let d = d as usize;
+            if d > max_depth {
+                max_depth = d;
+            }
+            match sym {
+                Symbol::Terminal(t) => {
+                    if let Some(o) = out.as_deref_mut() {
+                        o.push_str(grammar.terminal(t));
+                    }
+                }
+                Symbol::NonTerminal(r) => {
+                    pending_nts -= 1;
+                    let rule = &rules[r as usize];
+                    let alts = &rule.alternatives;
+                    let codon = if used < n { genome[used] } else { genome[used % n] };
+                    let alt = &alts[fast_mod(codon, rule.mod_magic, alts.len() as u32) as usize];
+                    used += 1;
+                    let cd = (d + 1) as u32;
+                    stack.extend(alt.symbols.iter().rev().map(|&s| (s, cd)));
+                    pending_nts += alt.nt_count as usize;
+                }
+            }
+        }
+        MapStats { valid: stack.is_empty(), used_codons: used, depth: max_depth }
+    }
+}
+
+/// Map `genome` with a fresh [`Mapper`] (allocates; use a [`Mapper`] in loops).
+pub fn map_genome(grammar: &Grammar, genome: &[u32], limits: MapLimits) -> Mapping {
+    Mapper::new().map(grammar, genome, limits)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::ge::testdata::{FORGE, HEADER, SF, TEST_NEW};
+    use proptest::prelude::*;
+
+    pub(crate) fn grammar(text: &str) -> Grammar {
+        match Grammar::parse(text) {
+            Ok(g) => g,
+            Err(e) => panic!("grammar failed to parse: {e}"),
+        }
+    }
+
+    /// (genome, used, depth, phenotype) of the valid golden vectors of §5.8.
+    pub(crate) fn forge_golden() -> Vec<(Vec<u32>, usize, usize, String)> {
+        vec![
+            (
+                vec![
+                    1213, 1114, 267, 757, 1875, 1236, 970, 1281, 1189, 134, 1240, 26, 1861, 1715, 960, 531, 1128, 479,
+                    392, 1468, 963, 1107,
+                ],
+                12,
+                10,
+                format!(
+                    "{HEADER}[Sequence][Selector][PostCnd]DummyNode[/PostCnd][Sequence][Sequence][Cnstr]IsDropable_Hub[/Cnstr][/Sequence][Act]Explore_0_Avoid[/Act][/Sequence][/Selector][/Sequence]"
+                ),
+            ),
+            (
+                vec![
+                    1027, 25, 1038, 773, 1037, 793, 953, 372, 1146, 1579, 473, 816, 219, 562, 786, 606, 897, 1539,
+                    1964, 164, 1807, 896,
+                ],
+                15,
+                10,
+                format!(
+                    "{HEADER}[Selector][Selector][Sequence][PostCnd]IsCarrying_Food[/PostCnd][/Sequence][Sequence][Sequence][PreCnd]IsVisitedBefore_Sites_invert[/PreCnd][/Sequence][Act]MoveAway_Hub_Avoid[/Act][/Sequence][/Selector][/Selector]"
+                ),
+            ),
+            (
+                vec![
+                    780, 1228, 708, 273, 774, 1088, 1658, 1922, 411, 782, 1685, 1765, 312, 1355, 1743, 256, 961, 1037,
+                    552, 1142, 15, 870, 417, 742, 1911, 1094, 165, 946,
+                ],
+                19,
+                10,
+                format!(
+                    "{HEADER}[Sequence][Selector][PostCnd]DummyNode[/PostCnd][Sequence][Sequence][PreCnd]IsCarrying_Food[/PreCnd][/Sequence][Sequence][Cnstr]CanMove[/Cnstr][Cnstr]IsCarryable_Food[/Cnstr][/Sequence][Act]MoveAway_Hub_Avoid[/Act][/Sequence][/Selector][/Sequence]"
+                ),
+            ),
+        ]
+    }
+
+    pub(crate) fn sf_golden() -> Vec<(Vec<u32>, usize, usize, String)> {
+        vec![
+            (
+                vec![1450, 647, 1578, 61, 1154, 825, 1734, 793, 1969, 1736, 550, 1900, 1864, 107, 962, 768, 1451, 813],
+                12,
+                9,
+                format!(
+                    "{HEADER}[Selector][cond]IsDropable_Hub[/cond][cond]IsDropable_Hub[/cond][act]MoveTowards_Hub[/act][/Selector]"
+                ),
+            ),
+            (
+                sf_second(),
+                22,
+                10,
+                format!(
+                    "{HEADER}[Selector][Selector][cond]IsCarrying_Food_invert[/cond][cond]IsVisitedBefore_Sites_invert[/cond][cond]NeighbourObjects[/cond][act]MoveAway_Hub[/act][/Selector] [Sequence][cond]IsVisitedBefore_Hub_invert[/cond][act]Explore[/act][/Sequence][/Selector]"
+                ),
+            ),
+        ]
+    }
+
+    pub(crate) fn sf_second() -> Vec<u32> {
+        vec![
+            1774, 927, 1808, 570, 1290, 194, 631, 186, 1220, 1981, 1341, 1279, 1704, 169, 74, 1802, 1845, 1594, 671,
+            1221, 1064, 1641, 602, 1023, 9, 1356, 174, 936, 1341, 569, 833, 1128, 1908,
+        ]
+    }
+
+    pub(crate) fn test_new_golden() -> (Vec<u32>, usize, usize, String) {
+        let genome = vec![
+            52, 502, 361, 1386, 1210, 66, 193, 843, 1150, 1467, 453, 1815, 1659, 1945, 1430, 697, 319, 1963, 375, 780,
+            736, 1239, 140, 1099, 970, 1131, 1699, 1183, 1445, 168, 1584, 164, 1776, 780, 931, 507, 729, 823, 1248, 533,
+            336, 978, 1896, 1403, 1727, 471, 1134, 551, 433, 437, 1541, 1813, 373, 286, 1526, 1530, 1841, 1441, 450,
+            1044, 189, 342, 1286, 1624, 1393, 864, 1221, 130, 788, 781, 1220, 958, 1083, 514, 1988, 1133, 1762, 1930,
+            23, 1393, 1476, 234, 1396, 1812, 1099, 1537, 546, 1574, 1312, 696, 228, 601, 890, 323, 929, 6,
+        ];
+        let p = [
+            "[Sequence]",
+            "[Sequence][Selector][Sequence][PreCnd]IsVisitedBefore_Hub[/PreCnd][/Sequence][Act]MoveTowardsNormal[/Act][/Selector][PostCnd]DidAvoidedObj_Sites[/PostCnd][/Sequence]",
+            "[Sequence][Selector][Sequence][PreCnd]IsVisitedBefore_Hub_invert[/PreCnd][/Sequence][Act]ExploreNormal[/Act][/Selector][PostCnd]NeighbourObjects_Food[/PostCnd][/Sequence]",
+            "[Sequence][Selector][Sequence][PreCnd]IsDropable_Hub[/PreCnd][/Sequence][Act]ExploreNormal[/Act][/Selector][PostCnd]DidAvoidedObj_Sites[/PostCnd][PostCnd]NeighbourObjects_Hub[/PostCnd][PostCnd]IsVisitedBefore_Hub[/PostCnd][/Sequence]",
+            "[Sequence][Selector][Sequence][PreCnd]IsDropable_Sites[/PreCnd][/Sequence][Act]CompositeDrop[/Act][/Selector][PostCnd]IsVisitedBefore_Sites[/PostCnd][/Sequence]",
+            "[Sequence][Selector][Sequence][PreCnd]IsCarrying_Food_invert[/PreCnd][/Sequence][Act]CompositeDrop[/Act][/Selector][PostCnd]NeighbourObjects_Hub[/PostCnd][/Sequence]",
+            "[/Sequence]",
+        ];
+        (genome, 64, 10, format!("{HEADER}{}", p.concat()))
+    }
+
+    pub(crate) fn forge_invalid() -> Vec<Vec<u32>> {
+        vec![
+            vec![0; 20],
+            vec![1; 20],
+            (0..25).collect(),
+            vec![
+                975, 813, 1308, 1763, 308, 474, 1300, 310, 1777, 1896, 1071, 798, 1518, 31, 1375, 1591, 131, 326, 1552,
+                1960, 1210, 87, 616, 1597, 63, 1686, 1772, 551, 968, 1218, 1472, 1884,
+            ],
+        ]
+    }
+
+    fn check_valid(g: &Grammar, genome: &[u32], used: usize, depth: usize, phenotype: &str) {
+        let m = map_genome(g, genome, MapLimits::default());
+        assert!(m.valid, "expected valid: {genome:?}");
+        assert_eq!(m.used_codons, used, "used codons of {genome:?}");
+        assert_eq!(m.depth, depth, "depth of {genome:?}");
+        assert_eq!(m.phenotype.as_deref(), Some(phenotype));
+        // The non-allocating forms agree.
+        let mut mapper = Mapper::new();
+        let st = mapper.map_stats(g, genome, MapLimits::default());
+        assert_eq!(st, MapStats { valid: true, used_codons: used, depth });
+        let mut buf = String::from("garbage");
+        assert_eq!(mapper.map_into(g, genome, MapLimits::default(), &mut buf), st);
+        assert_eq!(buf, phenotype);
+    }
+
+    #[test]
+    fn forge_golden_vectors() {
+        let g = grammar(FORGE);
+        for (genome, used, depth, p) in forge_golden() {
+            check_valid(&g, &genome, used, depth, &p);
+        }
+    }
+
+    #[test]
+    fn forge_codon_14_variant() {
+        let g = grammar(FORGE);
+        let (mut genome, used, depth, p) = forge_golden().swap_remove(1);
+        assert_eq!(genome[14], 786);
+        genome[14] = 1589;
+        let p = p.replace("MoveAway_Hub_Avoid", "MoveAway_Sites_Avoid");
+        assert!(p.contains("MoveAway_Sites_Avoid"));
+        check_valid(&g, &genome, used, depth, &p);
+    }
+
+    #[test]
+    fn forge_invalid_vectors() {
+        let g = grammar(FORGE);
+        for genome in forge_invalid() {
+            let m = map_genome(&g, &genome, MapLimits::default());
+            assert!(!m.valid, "expected invalid: {genome:?}");
+            assert_eq!(m.phenotype, None);
+        }
+    }
+
+    #[test]
+    fn sf_golden_vectors() {
+        let g = grammar(SF);
+        for (genome, used, depth, p) in sf_golden() {
+            check_valid(&g, &genome, used, depth, &p);
+        }
+        let mut genome = sf_second();
+        assert_eq!(genome[16], 1845);
+        genome[16] = 1519;
+        let m = map_genome(&g, &genome, MapLimits::default());
+        assert!(!m.valid);
+        assert_eq!(m.phenotype, None);
+    }
+
+    #[test]
+    fn test_new_golden_vector() {
+        let g = grammar(TEST_NEW);
+        let (genome, used, depth, p) = test_new_golden();
+        assert_eq!(genome.len(), 96);
+        check_valid(&g, &genome, used, depth, &p);
+    }
+
+    #[test]
+    fn genome_end_and_depth_limit() {
+        let g = grammar(FORGE);
+        let (genome, used, _, _) = forge_golden().swap_remove(0);
+        // Exactly the used codons suffice; one fewer does not.
+        assert!(map_genome(&g, &genome[..used], MapLimits::default()).valid);
+        assert!(!map_genome(&g, &genome[..used - 1], MapLimits::default()).valid);
+        // The same genome under a tighter depth limit is invalid, without limit valid.
+        assert!(!map_genome(&g, &genome, MapLimits { max_tree_depth: 9, max_wraps: 0 }).valid);
+        assert!(map_genome(&g, &genome, MapLimits { max_tree_depth: 0, max_wraps: 0 }).valid);
+        // Empty genome: invalid, no panic.
+        assert!(!map_genome(&g, &[], MapLimits::default()).valid);
+    }
+
+    #[test]
+    fn wrapping_follows_ponyge2() {
+        let g = grammar("<a> ::= x<b>\n<b> ::= y | z\n");
+        // One codon: <a> uses it, then the genome is exhausted with <b> pending.
+        let none = MapLimits { max_tree_depth: 10, max_wraps: 0 };
+        assert!(!map_genome(&g, &[1], none).valid);
+        // PonyGE2 advances the wrap counter on every iteration while used % n == 0 and a
+        // non-terminal is pending: one wrap is spent on the "x" iteration, the second on
+        // expanding <b>; the terminal that expansion pushes is still unprocessed when the
+        // loop stops. So one wrap is not enough, two are.
+        assert!(!map_genome(&g, &[1], MapLimits { max_tree_depth: 10, max_wraps: 1 }).valid);
+        let m = map_genome(&g, &[1], MapLimits { max_tree_depth: 10, max_wraps: 2 });
+        assert!(m.valid);
+        assert_eq!(m.phenotype.as_deref(), Some("xz"));
+        assert_eq!(m.used_codons, 2);
+        // Last symbol beyond the depth limit: still valid (no symbol left to process).
+        let deep = grammar("<a> ::= <b>\n<b> ::= <c>\n<c> ::= q\n");
+        let m = map_genome(&deep, &[0, 0, 0], MapLimits { max_tree_depth: 3, max_wraps: 0 });
+        assert!(m.valid, "{m:?}");
+        assert_eq!(m.depth, 4);
+        let deep3 = grammar("<a> ::= <b>\n<b> ::= <c><c>\n<c> ::= q\n");
+        let m = map_genome(&deep3, &[0, 0, 0, 0], MapLimits { max_tree_depth: 3, max_wraps: 0 });
+        assert!(!m.valid, "{m:?}");
+    }
+
+    #[test]
+    fn fast_mod_edges() {
+        use crate::ge::grammar::mod_magic;
+        for d in [1u32, 2, 3, 5, 7, 8, 1000, 2001, u32::MAX - 1, u32::MAX] {
+            for a in [0u32, 1, 2, d - 1, d, d.wrapping_add(1), 1999, 2000, u32::MAX - 1, u32::MAX] {
+                assert_eq!(fast_mod(a, mod_magic(d), d), a % d, "{a} % {d}");
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(512))]
+
+        #[test]
+        fn mapper_never_panics_and_is_consistent(
+            genome in proptest::collection::vec(any::<u32>(), 0..160),
+            which in 0usize..3,
+            depth in 0usize..14,
+            wraps in 0usize..3,
+        ) {
+            let g = grammar([FORGE, SF, TEST_NEW][which]);
+            let limits = MapLimits { max_tree_depth: depth, max_wraps: wraps };
+            let m = map_genome(&g, &genome, limits);
+            let st = Mapper::new().map_stats(&g, &genome, limits);
+            prop_assert_eq!(st.valid, m.valid);
+            prop_assert_eq!(st.used_codons, m.used_codons);
+            prop_assert_eq!(st.depth, m.depth);
+            if m.valid {
+                if wraps == 0 {
+                    prop_assert!(m.used_codons <= genome.len());
+                }
+                let p = m.phenotype.as_deref().unwrap_or("");
+                prop_assert!(p.starts_with(HEADER));
+            } else {
+                prop_assert!(m.phenotype.is_none());
+            }
+        }
+
+        #[test]
+        fn fast_mod_is_exact(a in any::<u32>(), d in 1u32..5000) {
+            prop_assert_eq!(fast_mod(a, crate::ge::grammar::mod_magic(d), d), a % d);
+        }
+
+        #[test]
+        fn small_codon_genomes_map_like_their_residues(genome in proptest::collection::vec(0u32..2000, 1..60)) {
+            // Adding a common multiple of every alternative count (420 = lcm(1..=7)) to a
+            // codon never changes the mapping.
+            let g = grammar(FORGE);
+            let shifted: Vec<u32> = genome.iter().map(|c| c + 420).collect();
+            prop_assert_eq!(
+                map_genome(&g, &genome, MapLimits::default()),
+                map_genome(&g, &shifted, MapLimits::default())
+            );
+        }
+    }
+}

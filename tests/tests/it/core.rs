@@ -1,0 +1,153 @@
+//! The in-process simulation core end to end: determinism, learning, CLI contract.
+use geese_orchestrator::config::RunConfig;
+use geese_orchestrator::Trial;
+use geese_proto::StepReport;
+use geese_world::Task;
+use std::process::Command;
+
+fn small(task: Task, seed: u64, agents: u32, steps: u64) -> RunConfig {
+    let mut c = RunConfig { steps, seed, ..Default::default() };
+    c.world.task = task;
+    c.world.agents = agents;
+    c
+}
+
+fn reports(cfg: RunConfig) -> Vec<StepReport> {
+    let steps = cfg.steps;
+    let spec = cfg.validate().expect("valid config");
+    let mut t = Trial::new(&spec).expect("world builds");
+    (0..steps).map(|_| t.step()).collect()
+}
+
+#[test]
+fn same_seed_same_trajectory_other_seed_other_trajectory() {
+    let a = reports(small(Task::Foraging, 11, 30, 300));
+    let b = reports(small(Task::Foraging, 11, 30, 300));
+    let c = reports(small(Task::Foraging, 12, 30, 300));
+    assert_eq!(a, b);
+    assert_ne!(a.iter().map(|r| r.digest).collect::<Vec<_>>(), c.iter().map(|r| r.digest).collect::<Vec<_>>());
+}
+
+#[test]
+fn learning_happens_and_lateral_transfer_switch_works() {
+    let on = reports(small(Task::Foraging, 3, 100, 400));
+    let genetic: u32 = on.iter().map(|r| r.genetic_steps).sum();
+    assert!(genetic > 0, "no storage-triggered genetic step in 400 steps");
+    assert!(on.iter().any(|r| r.lt_mean > 0.0));
+    let mut cfg = small(Task::Foraging, 3, 100, 400);
+    cfg.lateral_transfer = false;
+    let off = reports(cfg);
+    assert_eq!(off.iter().map(|r| r.genetic_steps).sum::<u32>(), 0);
+    assert!(off.iter().all(|r| r.lt_mean == 0.0));
+}
+
+#[test]
+fn bad_parameters_are_named() {
+    let mut c = RunConfig { ip: 1.5, ..Default::default() };
+    assert!(c.clone().validate().unwrap_err().to_string().contains("ip"));
+    c.ip = 0.5;
+    c.learner.st = 3;
+    assert!(c.clone().validate().unwrap_err().to_string().contains("st"));
+    c.learner.st = 7;
+    c.world.grid = 7;
+    assert!(c.clone().validate().unwrap_err().to_string().contains("grid"));
+    c.world.grid = 10;
+    c.world.agents = 0;
+    assert!(c.clone().validate().unwrap_err().to_string().contains("agents"));
+}
+
+fn geese(args: &[&str]) -> (bool, String, String) {
+    let bin = geese_tests::bin_path("geese-orchestrator", "geese");
+    let out = Command::new(bin).args(args).output().expect("run geese");
+    (out.status.success(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
+}
+
+#[test]
+fn cli_grammar_map_matches_golden_vectors() {
+    let (ok, out, err) = geese(&[
+        "grammar",
+        "map",
+        "--grammar",
+        "betr-foraging-avoid",
+        "--genome",
+        "1213,1114,267,757,1875,1236,970,1281,1189,134,1240,26,1861,1715,960,531,1128,479,392,1468,963,1107",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(out.trim()).expect("one JSON object");
+    assert_eq!(v["valid"], true);
+    assert_eq!(v["used_codons"], 12);
+    assert_eq!(v["depth"], 10);
+    assert_eq!(v["diversity"], 5.5556);
+    assert_eq!(
+        v["phenotype"],
+        "[?xml version=%1.0% encoding=%UTF-8%?][Sequence][Selector][PostCnd]DummyNode[/PostCnd][Sequence][Sequence][Cnstr]IsDropable_Hub[/Cnstr][/Sequence][Act]Explore_0_Avoid[/Act][/Sequence][/Selector][/Sequence]"
+    );
+    let (ok, out, _) = geese(&["grammar", "map", "--grammar", "betr-foraging-avoid", "--genome", "0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0"]);
+    assert!(ok);
+    assert_eq!(out.trim(), r#"{"valid":false}"#);
+    let (ok, out, err) = geese(&[
+        "grammar",
+        "map",
+        "--grammar",
+        "geese-bt-foraging",
+        "--genome",
+        "1774,927,1808,570,1290,194,631,186,1220,1981,1341,1279,1704,169,74,1802,1845,1594,671,1221,1064,1641,602,1023,9,1356,174,936,1341,569,833,1128,1908",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(out.trim()).expect("json");
+    assert_eq!((v["used_codons"].as_u64(), v["depth"].as_u64(), v["diversity"].as_f64()), (Some(22), Some(10), Some(13.8889)));
+}
+
+#[test]
+fn cli_grammar_tree_prints_the_worked_tree() {
+    let (ok, out, err) = geese(&[
+        "grammar",
+        "tree",
+        "--grammar",
+        "betr-foraging-avoid",
+        "--genome",
+        "1027,25,1038,773,1037,793,953,372,1146,1579,473,816,219,562,786,606,897,1539,1964,164,1807,896",
+    ]);
+    assert!(ok, "{err}");
+    let expected = "Selector\n  Selector\n    Sequence\n      IsCarrying[Food] (PostCnd)\n    Sequence\n      Sequence\n        Inverter\n          IsVisitedBefore[Sites] (PreCnd)\n        MoveAway[Hub] (Act)\n";
+    assert_eq!(out, expected);
+}
+
+#[test]
+fn cli_rejects_bad_input_with_a_named_error() {
+    let (ok, _, err) = geese(&["grammar", "map", "--grammar", "betr-foraging-avoid", "--genome", "1,2,x"]);
+    assert!(!ok && err.contains("codon 3"), "{err}");
+    let (ok, _, err) = geese(&["grammar", "map", "--grammar", "/nonexistent.bnf", "--genome", "1"]);
+    assert!(!ok && err.contains("/nonexistent.bnf"), "{err}");
+    let (ok, _, err) = geese(&["run", "--ip", "2", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("ip"), "{err}");
+    let (ok, _, err) = geese(&["run", "--st", "2", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("st"), "{err}");
+    let (ok, _, err) = geese(&["run", "--gs", "7", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("grid"), "{err}");
+    let (ok, _, err) = geese(&["run", "--agents", "0", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("agents"), "{err}");
+    let (ok, _, err) = geese(&["run", "--task", "flying", "--steps", "1"]);
+    assert!(!ok && err.contains("flying"), "{err}");
+    let dir = tempfile::tempdir().expect("tmp");
+    let cfg = dir.path().join("bad.toml");
+    std::fs::write(&cfg, "steps = 3\n[world]\nwidht = 100\n").expect("write");
+    let (ok, _, err) = geese(&["run", "--config", cfg.to_str().expect("utf8"), "-q"]);
+    assert!(!ok && err.contains("widht"), "{err}");
+}
+
+#[test]
+fn cli_run_writes_csv_and_manifest() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let out = dir.path().join("r");
+    let (ok, stdout, err) = geese(&["run", "--agents", "20", "--steps", "50", "--seed", "4", "-q", "--out", out.to_str().expect("utf8")]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("final task %"), "{stdout}");
+    let csv = std::fs::read_to_string(out.join("steps.csv")).expect("csv");
+    assert_eq!(csv.lines().count(), 51);
+    assert!(csv.starts_with("step,task_pct"));
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).expect("manifest")).expect("json");
+    assert_eq!(m["seed"], 4);
+    assert_eq!(m["config"]["world"]["agents"], 20);
+    assert!(m["versions"]["git_revision"].is_string());
+}
