@@ -6,9 +6,28 @@
 //! - [`trial`]: one trial in one process over the in-memory transport.
 //! - [`output`]: per-step CSV and the run manifest.
 //! - [`bench`]: throughput benchmark of the simulation core.
+//! - [`launch`]: the distributed mode: world and agent processes over Zenoh.
+//! - [`bench_net`]: the distributed benchmark (lock-step rate over Zenoh, bare and
+//!   learning).
+//! - [`condition`]: the knobs a campaign varies and how a condition builds a run config.
+//! - [`campaign`]: campaign files, the trial plan, the [`campaign::TrialRunner`] hook and
+//!   the parallel, resumable executor.
+//! - [`store`]: the SQLite results database (manifest, trials, step rows) and CSV export.
+//! - [`metrics`]: success rate, power, efficiency (paper and reference-code variants),
+//!   summary statistics and least-squares slopes; pure functions.
+//! - [`report`]: metric tables and figures from a results database.
+//! - [`plot`]: PNG/SVG figures (learning curves, resilience scatters, box plots).
 pub mod bench;
+pub mod bench_net;
+pub mod campaign;
+pub mod condition;
 pub mod config;
+pub mod launch;
+pub mod metrics;
 pub mod output;
+pub mod plot;
+pub mod report;
+pub mod store;
 pub mod trial;
 
 pub use config::{RunConfig, RunSpec};

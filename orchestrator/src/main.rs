@@ -11,6 +11,9 @@ use geese_world::{Layout, Task};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
+mod campaign_cli;
+use campaign_cli::{CampaignArgs, ExportArgs, ReportArgs};
+
 #[derive(Parser)]
 #[command(name = "geese", version, about = "Online evolution of resilient swarm behaviours (BeTr-GEESE)")]
 struct Cli {
@@ -29,6 +32,17 @@ enum Cmd {
     },
     /// Benchmark the simulation core: learning agent-steps per second on one thread.
     Bench(BenchArgs),
+    /// Benchmark the distributed runtime: lock-step rate over Zenoh, bare and learning.
+    BenchNet(geese_orchestrator::bench_net::BenchNetArgs),
+    /// Run a plain Zenoh router (default tcp/127.0.0.1:7447) for --router set-ups.
+    Router(geese_orchestrator::launch::RouterArgs),
+    /// Run a campaign file (conditions × tasks × seeds) into a results database;
+    /// re-running it resumes where it stopped.
+    Campaign(CampaignArgs),
+    /// Print metric tables and draw figures from a results database.
+    Report(ReportArgs),
+    /// Export a results database to CSV files.
+    Export(ExportArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -89,6 +103,9 @@ struct RunArgs {
     /// No progress bar.
     #[arg(long, short)]
     quiet: bool,
+    /// Distributed mode (issue 3): --processes N and its options.
+    #[command(flatten)]
+    net: Box<geese_orchestrator::launch::NetArgs>,
 }
 
 impl RunArgs {
@@ -251,11 +268,15 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
 }
 
 fn run_cmd(a: RunArgs) -> Result<()> {
-    let cfg = a.resolve()?;
+    let cfg = a.net.apply(a.resolve()?);
+    let net = a.net.options()?;
     let spec = cfg.validate()?;
     let c = &spec.config;
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}-seed{}", c.world.task, c.seed)));
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create output directory {}", out.display()))?;
+    if let Some(opts) = net {
+        return net_run_cmd(&spec, &opts, &out, a.quiet);
+    }
     let csv_path = out.join("steps.csv");
     let mut csv = StepCsv::create(&csv_path).with_context(|| format!("cannot write {}", csv_path.display()))?;
     eprintln!(
@@ -289,6 +310,42 @@ fn run_cmd(a: RunArgs) -> Result<()> {
     }
     println!("wall time: {:.2} s", summary.wall_seconds);
     println!("results: {} and {}", csv_path.display(), out.join("manifest.json").display());
+    Ok(())
+}
+
+/// `geese run --processes N`: the same run as separate processes over Zenoh.
+fn net_run_cmd(
+    spec: &geese_orchestrator::RunSpec,
+    opts: &geese_orchestrator::launch::NetOptions,
+    out: &std::path::Path,
+    quiet: bool,
+) -> Result<()> {
+    let c = &spec.config;
+    eprintln!(
+        "geese run: {} agents in {} agent processes over Zenoh, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
+        c.world.agents, opts.processes, c.steps, c.world.task, spec.grammar_name, c.ip, c.learner.st, c.world.grid, c.seed
+    );
+    let o = geese_orchestrator::launch::run_cli(spec, opts, out, quiet)?;
+    let s = &o.summary;
+    println!("final task %: {:.2}", s.final_task_pct);
+    match s.first_step_at_threshold {
+        Some(st) => println!("reached {} % at step {st}", c.threshold),
+        None => println!(
+            "never reached {} % (max {:.2} %)",
+            c.threshold, s.max_task_pct
+        ),
+    }
+    println!(
+        "wall time: {:.2} s ({:.1} steps/s once all processes were present)",
+        s.wall_seconds,
+        o.reports as f64 / o.run_seconds.max(1e-9)
+    );
+    println!(
+        "results: {}, {} and {}",
+        out.join("steps.csv").display(),
+        out.join("net.csv").display(),
+        out.join("manifest.json").display()
+    );
     Ok(())
 }
 
@@ -330,5 +387,10 @@ fn main() -> Result<()> {
         Cmd::Run(a) => run_cmd(a),
         Cmd::Grammar { cmd } => grammar_cmd(cmd),
         Cmd::Bench(a) => bench_cmd(a),
+        Cmd::BenchNet(a) => geese_orchestrator::bench_net::bench_net_cmd(a),
+        Cmd::Router(a) => geese_orchestrator::launch::router_cmd(a),
+        Cmd::Campaign(a) => campaign_cli::campaign_cmd(a),
+        Cmd::Report(a) => campaign_cli::report_cmd(a),
+        Cmd::Export(a) => campaign_cli::export_cmd(a),
     }
 }

@@ -40,6 +40,205 @@ pub fn presence(run: &str, who: &str) -> String {
     format!("geese/{run}/presence/{who}")
 }
 
+/// The contiguous range of agent ids one agent process speaks for (inclusive). In a key
+/// it is one chunk: `7` for a single agent, `0-99` for a hosting process.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct AgentRange {
+    pub first: u32,
+    pub last: u32,
+}
+
+impl AgentRange {
+    /// `count` agents from `first` on (`count` ≥ 1).
+    pub fn new(first: u32, count: u32) -> Option<Self> {
+        let last = first.checked_add(count.checked_sub(1)?)?;
+        Some(AgentRange { first, last })
+    }
+    pub fn contains(&self, id: u32) -> bool {
+        (self.first..=self.last).contains(&id)
+    }
+    pub fn len(&self) -> u32 {
+        self.last - self.first + 1
+    }
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+    pub fn ids(&self) -> std::ops::RangeInclusive<u32> {
+        self.first..=self.last
+    }
+    /// Parse a key chunk (`7` or `0-99`); `None` for anything else.
+    pub fn parse(chunk: &str) -> Option<Self> {
+        let num = |s: &str| -> Option<u32> {
+            if s.is_empty() || s.len() > 10 || !s.bytes().all(|b| b.is_ascii_digit()) {
+                return None;
+            }
+            s.parse().ok()
+        };
+        match chunk.split_once('-') {
+            None => num(chunk).map(|id| AgentRange {
+                first: id,
+                last: id,
+            }),
+            Some((a, b)) => {
+                let (first, last) = (num(a)?, num(b)?);
+                (first < last).then_some(AgentRange { first, last })
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for AgentRange {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.first == self.last {
+            write!(f, "{}", self.first)
+        } else {
+            write!(f, "{}-{}", self.first, self.last)
+        }
+    }
+}
+
+/// A run name is one key chunk of letters, digits, `_`, `-` and `.`.
+pub fn valid_run_name(run: &str) -> bool {
+    !run.is_empty()
+        && run.len() <= 64
+        && run
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
+}
+
+/// Genes published in cell (cx, cy) by the agent process speaking for `from` (the
+/// world gathers them and republishes the cell's genes as one batch on [`cell_genes`]).
+pub fn cell_genes_from(run: &str, cx: i32, cy: i32, from: AgentRange) -> String {
+    format!("geese/{run}/cell/{cx}/{cy}/genes/{from}")
+}
+
+/// Percepts of every cell (the subscription of a process hosting many agents).
+pub fn all_percepts(run: &str) -> String {
+    format!("geese/{run}/cell/*/*/percept")
+}
+
+/// The world's gene aggregates of every cell (the subscription of a process hosting
+/// many agents).
+pub fn all_cell_genes(run: &str) -> String {
+    format!("geese/{run}/cell/*/*/genes")
+}
+
+/// Every agent process's gene batches in every cell (the world's subscription).
+pub fn all_gene_batches(run: &str) -> String {
+    format!("geese/{run}/cell/*/*/genes/*")
+}
+
+/// Intents of the agents of `from` (`agent/<id>/action` for one agent).
+pub fn agents_action(run: &str, from: AgentRange) -> String {
+    format!("geese/{run}/agent/{from}/action")
+}
+
+/// The world's per-step announcement of where every agent is ([`crate::net::Tick`]).
+pub fn tick(run: &str) -> String {
+    format!("geese/{run}/tick")
+}
+
+/// The world's run information queryable ([`crate::net::RunInfo`]).
+pub fn info(run: &str) -> String {
+    ctl(run, "info")
+}
+
+/// Every control key of a run.
+pub fn all_ctl(run: &str) -> String {
+    format!("geese/{run}/ctl/**")
+}
+
+/// Liveliness token of the world server.
+pub fn world_presence(run: &str) -> String {
+    presence(run, "world")
+}
+
+/// Liveliness token of the orchestrator.
+pub fn orchestrator_presence(run: &str) -> String {
+    presence(run, "orchestrator")
+}
+
+/// Liveliness token of an agent process speaking for `agents`.
+pub fn agents_presence(run: &str, agents: AgentRange) -> String {
+    format!("geese/{run}/presence/agents/{agents}")
+}
+
+/// Every liveliness token of a run.
+pub fn all_presence(run: &str) -> String {
+    format!("geese/{run}/presence/**")
+}
+
+/// What a key of a run is, as far as a receiver cares.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Parsed {
+    Percept {
+        cx: i32,
+        cy: i32,
+    },
+    /// Genes in a cell; `from` is `None` on the bare `genes` key (no sender named).
+    Genes {
+        cx: i32,
+        cy: i32,
+        from: Option<AgentRange>,
+    },
+    Action {
+        from: AgentRange,
+    },
+    WorldPresence,
+    OrchestratorPresence,
+    AgentsPresence {
+        agents: AgentRange,
+    },
+    Other,
+}
+
+/// Parse a key expression of run `run`; anything unexpected is [`Parsed::Other`].
+pub fn parse(run: &str, key: &str) -> Parsed {
+    let Some(rest) = key
+        .strip_prefix("geese/")
+        .and_then(|k| k.strip_prefix(run))
+        .and_then(|k| k.strip_prefix('/'))
+    else {
+        return Parsed::Other;
+    };
+    let parts: Vec<&str> = rest.split('/').collect();
+    let coord = |s: &str| -> Option<i32> {
+        if s.is_empty() || s.len() > 6 || !s.bytes().all(|b| b.is_ascii_digit()) {
+            return None;
+        }
+        s.parse().ok()
+    };
+    match parts.as_slice() {
+        ["cell", cx, cy, "percept"] => match (coord(cx), coord(cy)) {
+            (Some(cx), Some(cy)) => Parsed::Percept { cx, cy },
+            _ => Parsed::Other,
+        },
+        ["cell", cx, cy, "genes"] => match (coord(cx), coord(cy)) {
+            (Some(cx), Some(cy)) => Parsed::Genes { cx, cy, from: None },
+            _ => Parsed::Other,
+        },
+        ["cell", cx, cy, "genes", from] => match (coord(cx), coord(cy), AgentRange::parse(from)) {
+            (Some(cx), Some(cy), Some(from)) => Parsed::Genes {
+                cx,
+                cy,
+                from: Some(from),
+            },
+            _ => Parsed::Other,
+        },
+        ["agent", from, "action"] => match AgentRange::parse(from) {
+            Some(from) => Parsed::Action { from },
+            None => Parsed::Other,
+        },
+        ["presence", "world"] => Parsed::WorldPresence,
+        ["presence", "orchestrator"] => Parsed::OrchestratorPresence,
+        ["presence", "agents", a] => match AgentRange::parse(a) {
+            Some(agents) => Parsed::AgentsPresence { agents },
+            None => Parsed::Other,
+        },
+        _ => Parsed::Other,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #[test]
@@ -48,5 +247,53 @@ mod tests {
         assert_eq!(super::cell_genes("r1", 3, 4), "geese/r1/cell/3/4/genes");
         assert_eq!(super::agent_action("r1", 7), "geese/r1/agent/7/action");
         assert_eq!(super::report("r1"), "geese/r1/report");
+    }
+
+    #[test]
+    fn ranges_and_parsing() {
+        use super::{parse, AgentRange, Parsed};
+        let one = AgentRange::new(7, 1).unwrap();
+        let many = AgentRange::new(0, 100).unwrap();
+        assert_eq!(one.to_string(), "7");
+        assert_eq!(many.to_string(), "0-99");
+        assert_eq!(AgentRange::parse("0-99"), Some(many));
+        assert_eq!(AgentRange::parse("7"), Some(one));
+        for bad in ["", "-", "5-5", "9-3", "x", "1-2-3", "+1", "99999999999"] {
+            assert_eq!(AgentRange::parse(bad), None, "{bad}");
+        }
+        assert_eq!(super::agents_action("r", one), super::agent_action("r", 7));
+        assert_eq!(
+            parse("r", &super::cell_percept("r", 3, 4)),
+            Parsed::Percept { cx: 3, cy: 4 }
+        );
+        assert_eq!(
+            parse("r", &super::cell_genes_from("r", 3, 4, many)),
+            Parsed::Genes {
+                cx: 3,
+                cy: 4,
+                from: Some(many)
+            }
+        );
+        assert_eq!(
+            parse("r", &super::agents_action("r", many)),
+            Parsed::Action { from: many }
+        );
+        assert_eq!(
+            parse("r", &super::agents_presence("r", one)),
+            Parsed::AgentsPresence { agents: one }
+        );
+        assert_eq!(
+            parse("r", &super::world_presence("r")),
+            Parsed::WorldPresence
+        );
+        assert_eq!(parse("r", "geese/other/agent/1/action"), Parsed::Other);
+        assert_eq!(parse("r", "geese/r/agent/x/action"), Parsed::Other);
+        assert_eq!(parse("r", "geese/r/cell/-1/2/percept"), Parsed::Other);
+        assert!(super::valid_run_name("geese-1.a_b"));
+        assert!(
+            !super::valid_run_name("a/b")
+                && !super::valid_run_name("*")
+                && !super::valid_run_name("")
+        );
     }
 }

@@ -13,12 +13,18 @@
 //! - [`codec`]: the versioned envelope and its decode errors.
 //! - [`membus`]: the in-memory transport.
 //! - [`seed`]: named random streams and portable digests.
+//! - [`net`]: the extra messages of the distributed runtime (ticks, batches, run info).
+//! - `zenoh_bus` (feature `zenoh`): the Zenoh transport — session configuration, the
+//!   command-line arguments every process shares, publication helpers.
 pub mod codec;
 pub mod geometry;
 pub mod keys;
 pub mod membus;
 pub mod message;
+pub mod net;
 pub mod seed;
+#[cfg(feature = "zenoh")]
+pub mod zenoh_bus;
 
 pub use codec::{decode, encode, CodecError, WIRE_VERSION};
 pub use geometry::{CellIdx, Geometry, Pos};

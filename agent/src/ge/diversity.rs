@@ -2,17 +2,19 @@
 //!
 //! Why this exists: D is the fitness every new individual is born with, so it is
 //! computed for every offspring of every genetic step. Instead of building an XML tree it
-//! streams over the phenotype string with the same tokenizer as the tree parser,
-//! reproducing ElementTree's view: every element is visited in document order; elements
-//! tagged `Sequence`/`Selector` are skipped; any other element contributes its text (the
-//! characters right after its start tag up to the next tag), cut at the first `_`. Only
-//! the counts of the nine behaviour names, whether any other name occurred, and the total
-//! are needed, so nothing is allocated.
+//! makes one pass over the phenotype bytes, reproducing ElementTree's view: every element
+//! is visited in document order; elements tagged `Sequence`/`Selector` are skipped; any
+//! other element contributes its text (the characters right after its start tag up to
+//! the next tag), cut at the first `_`. Only the counts of the nine behaviour names,
+//! whether any other name occurred, and the total are needed, so nothing is allocated.
+//! The pass accepts exactly what the [`super::phenotype`] tokenizer accepts (a test
+//! checks the two against each other), except that end-tag names are not matched
+//! against their start tags.
 //!
-//! Decisions where the Python would crash or the case cannot arise from a grammar: a phenotype that is not well-formed gives NaN
-//! (like an invalid individual); a non-control element without text counts as the empty
-//! name (not a behaviour); a phenotype without any non-control element gives 0; a
-//! `[?…?]` inside the document element gives NaN.
+//! Decisions where the Python would crash, or for input no grammar produces: a phenotype
+//! that is not well-formed gives NaN (like an invalid individual); a non-control element
+//! without text counts as the empty name (not a behaviour); a phenotype without any
+//! non-control element gives 0; a `[?…?]` inside the document element gives NaN.
 
 /// The behaviour names B of §5.5, sorted (L = 9).
 pub const BEHAVIOURS: [&str; 9] = [
@@ -189,7 +191,8 @@ fn score(c: &Counts) -> f64 {
         let mut sorted = c.per_behaviour;
         sorted.sort_unstable();
         let min = sorted[0];
-        if s % L == 0 && min == s / L {
+        // S mod L = 0 and min = S/L, i.e. min·L = S.
+        if min * L == s {
             1.0
         } else {
             // min ≤ ⌊S/L⌋ always holds when all nine names are present.

@@ -39,6 +39,20 @@ pub struct Alternative {
     pub(crate) symbols: Box<[Symbol]>,
     pub(crate) max_path: u32,
     pub(crate) nt_count: u32,
+    /// The symbols right to left, packed for the mapper's stack ([`pack_symbol`]).
+    pub(crate) packed_rev: Box<[u64]>,
+}
+
+/// Bit marking a non-terminal in a packed symbol.
+pub(crate) const PACKED_NT: u64 = 1 << 31;
+
+/// Pack a symbol into the low 32 bits of a mapper stack entry (the high 32 bits carry the
+/// depth): terminal id, or rule id with [`PACKED_NT`] set.
+pub(crate) fn pack_symbol(s: Symbol) -> u64 {
+    match s {
+        Symbol::Terminal(t) => u64::from(t),
+        Symbol::NonTerminal(r) => PACKED_NT | u64::from(r),
+    }
 }
 
 impl Alternative {
@@ -245,7 +259,13 @@ impl Grammar {
                         },
                     });
                 }
-                alternatives.push(Alternative { symbols: symbols.into_boxed_slice(), max_path: 0, nt_count });
+                let packed_rev = symbols.iter().rev().map(|&s| pack_symbol(s)).collect();
+                alternatives.push(Alternative {
+                    symbols: symbols.into_boxed_slice(),
+                    max_path: 0,
+                    nt_count,
+                    packed_rev,
+                });
             }
             let mod_magic = mod_magic(alternatives.len() as u32);
             rules.push(Rule { name: r.name, line: r.line, alternatives, min_steps: 0, min_path: Vec::new(), mod_magic });

@@ -14,7 +14,7 @@
 //! pending, and a symbol deeper than the limit only invalidates the individual if further
 //! symbols remain).
 
-use super::grammar::{fast_mod, Grammar, Symbol};
+use super::grammar::{fast_mod, pack_symbol, Grammar, Symbol, PACKED_NT};
 
 /// Limits of one mapping (PonyGE2 `MAX_TREE_DEPTH`, `MAX_WRAPS`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -54,7 +54,7 @@ pub struct Mapping {
 /// Reusable mapper state (the symbol stack), so repeated mappings do not allocate.
 #[derive(Debug, Clone, Default)]
 pub struct Mapper {
-    stack: Vec<(Symbol, u32)>,
+    stack: Vec<u64>,
 }
 
 impl Mapper {
@@ -64,14 +64,14 @@ impl Mapper {
 
     /// Map without building the phenotype.
     pub fn map_stats(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> MapStats {
-        self.run(grammar, genome, limits, None)
+        self.run::<false>(grammar, genome, limits, &mut String::new())
     }
 
     /// Map and write the phenotype into `out` (cleared first). After an invalid mapping
     /// `out` holds the partial output; ignore it.
     pub fn map_into(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, out: &mut String) -> MapStats {
         out.clear();
-        self.run(grammar, genome, limits, Some(out))
+        self.run::<true>(grammar, genome, limits, out)
     }
 
     /// Map and return an owned [`Mapping`].
@@ -86,54 +86,68 @@ impl Mapper {
         }
     }
 
-    fn run(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, mut out: Option<&mut String>) -> MapStats {
+    fn run<const OUT: bool>(
+        &mut self,
+        grammar: &Grammar,
+        genome: &[u32],
+        limits: MapLimits,
+        out: &mut String,
+    ) -> MapStats {
         let n = genome.len();
         if n == 0 {
             // PonyGE2 would divide by zero here; an empty genome maps to nothing.
             return MapStats { valid: false, used_codons: 0, depth: 1 };
         }
+        // Stack entries: packed symbol in the low 32 bits, depth in the high 32 bits.
         let stack = &mut self.stack;
         stack.clear();
-        stack.push((Symbol::NonTerminal(grammar.start()), 1));
+        stack.push(pack_symbol(Symbol::NonTerminal(grammar.start())) | (1 << 32));
         let mut pending_nts = 1usize;
         let mut used = 0usize;
+        // used % n, maintained incrementally (no division in the loop).
+        let mut pos = 0usize;
         let mut wraps: i64 = -1;
         let max_wraps = limits.max_wraps as i64;
-        let depth_limit = limits.max_tree_depth;
+        let depth_limit = if limits.max_tree_depth == 0 {
+            usize::MAX
+        } else {
+            limits.max_tree_depth
+        };
         let mut max_depth = 1usize;
         let rules = grammar.rules();
 
         while wraps < max_wraps {
-            let Some(&(sym, d)) = stack.last() else { break };
-            if depth_limit != 0 && max_depth > depth_limit {
+            let Some(&entry) = stack.last() else { break };
+            if max_depth > depth_limit {
                 break;
             }
-            if used > 0 && used % n == 0 && pending_nts > 0 {
+            if pos == 0 && used > 0 && pending_nts > 0 {
                 wraps += 1;
             }
             stack.pop();
-            let d = d as usize;
+            let d = (entry >> 32) as usize;
             if d > max_depth {
                 max_depth = d;
             }
-            match sym {
-                Symbol::Terminal(t) => {
-                    if let Some(o) = out.as_deref_mut() {
-                        o.push_str(grammar.terminal(t));
-                    }
+            let code = entry as u32;
+            if u64::from(code) & PACKED_NT == 0 {
+                if OUT {
+                    out.push_str(grammar.terminal(code));
                 }
-                Symbol::NonTerminal(r) => {
-                    pending_nts -= 1;
-                    let rule = &rules[r as usize];
-                    let alts = &rule.alternatives;
-                    let codon = if used < n { genome[used] } else { genome[used % n] };
-                    let alt = &alts[fast_mod(codon, rule.mod_magic, alts.len() as u32) as usize];
-                    used += 1;
-                    let cd = (d + 1) as u32;
-                    stack.extend(alt.symbols.iter().rev().map(|&s| (s, cd)));
-                    pending_nts += alt.nt_count as usize;
-                }
+                continue;
             }
+            pending_nts -= 1;
+            let rule = &rules[(u64::from(code) & !PACKED_NT) as usize];
+            let alts = &rule.alternatives;
+            let alt = &alts[fast_mod(genome[pos], rule.mod_magic, alts.len() as u32) as usize];
+            used += 1;
+            pos += 1;
+            if pos == n {
+                pos = 0;
+            }
+            let child_depth = ((d + 1) as u64) << 32;
+            stack.extend(alt.packed_rev.iter().map(|&c| c | child_depth));
+            pending_nts += alt.nt_count as usize;
         }
         MapStats { valid: stack.is_empty(), used_codons: used, depth: max_depth }
     }

@@ -8,7 +8,7 @@
 //! - [`mapper`]: the linear genome → phenotype mapper of §5.4.
 //! - [`init`]: PonyGE2's `uniform_tree` random initialisation (§5.3).
 //! - [`phenotype`]: bracket phenotype string → composite tree with the §4.3 quirk.
-//! - [`diversity`]: the `bt_diversity` fitness D of §5.5.
+//! - [`mod@diversity`]: the `bt_diversity` fitness D of §5.5.
 //! - [`operators`]: parameters, individuals and one genetic step (§5.1, §5.6).
 
 pub mod diversity;

@@ -1,2 +1,4 @@
 //! Cross-crate integration tests (one test binary).
+mod campaign;
 mod core;
+mod distributed;

@@ -1,0 +1,863 @@
+//! `geese-agent`: one agent, or `--agents K` agents hosted on one shared session, in one
+//! process of a distributed GEESE run (DESIGN.md §2–4).
+//!
+//! A thin async shell around the synchronous [`Learner`]s. Per step, after the world's
+//! [`Tick`] (which says which cell every agent's centre is in):
+//! 1. read each own agent's cell percept (subscribed in advance, see below);
+//! 2. `begin_step`, then publish the process's genes of each cell as one [`GeneBatch`] on
+//!    `cell/<cx>/<cy>/genes/<ids>` — only when an agent of another process is in that
+//!    cell (own cell-mates get them in memory) — and wait, up to the gene deadline, for
+//!    the batches of the other processes whose agents are expected cell-mates;
+//! 3. `finish_step` with the genes of the cell (the learner sorts candidates by id), and
+//!    publish all intents as one [`IntentBatch`] on `agent/<ids>/action`.
+//!
+//! Before publishing its intents the process subscribes to the percept and gene topics
+//! of every cell its agents may be in next step (the current cell and the cells of their
+//! move destinations); Zenoh delivers a session's declarations before its later
+//! publications, and the world publishes the next percepts only after every intent, so
+//! those subscriptions are in place in time. A process hosting many agents subscribes to
+//! all cells instead (`--subscribe all`, the default when it hosts at least a quarter
+//! as many agents as there are cells).
+//!
+//! The process learns everything else (configuration, grammar, seed, where its agents
+//! are) from the world's `ctl/info` queryable, so agents on another host need nothing
+//! but `--run` and a way to reach the router. It exits when the world's liveliness
+//! token disappears, on the control plane's stop, or on SIGINT/SIGTERM.
+use anyhow::{bail, Context, Result};
+use clap::{Parser, ValueEnum};
+use geese_agent::ge::Grammar;
+use geese_agent::{Learner, LearnerConfig};
+use geese_proto::keys::{self, AgentRange, Parsed};
+use geese_proto::net::{
+    loss_draw, GeneBatch, HostCounters, IntentBatch, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
+};
+use geese_proto::seed::{derive, Owner, Purpose};
+use geese_proto::zenoh_bus::{self, CommonArgs, Role};
+use geese_proto::{decode, encode, AgentId, Control, GeneMsg, Geometry, Intent, Op, Percept};
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::qos::CongestionControl;
+use zenoh::sample::SampleKind;
+use zenoh::Session;
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum SubscribeArg {
+    /// `all` when hosting at least a quarter as many agents as there are cells, else `cells`.
+    Auto,
+    /// Only the cells the process's agents are in or may move into.
+    Cells,
+    /// Every cell's percepts and genes.
+    All,
+}
+
+#[derive(Parser)]
+#[command(
+    name = "geese-agent",
+    version,
+    about = "GEESE agent process (Zenoh): one or many agents"
+)]
+struct Args {
+    #[command(flatten)]
+    zenoh: CommonArgs,
+    /// Run name (the <run> of every key).
+    #[arg(long, default_value = "geese")]
+    run: String,
+    /// Id of the (first) agent of this process.
+    #[arg(long, default_value_t = 0)]
+    id: u32,
+    /// Number of agents hosted by this process (ids id..id+K).
+    #[arg(long, default_value_t = 1)]
+    agents: u32,
+    /// How to subscribe to cell topics.
+    #[arg(long, value_enum, default_value = "auto")]
+    subscribe: SubscribeArg,
+    /// Give up if the world has not answered within this many milliseconds.
+    #[arg(long, default_value_t = 60_000)]
+    join_timeout_ms: u64,
+    /// Tokio worker threads.
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
+    /// Run the agents on a runtime of their own rather than on Zenoh's (diagnosis).
+    #[arg(long)]
+    separate_runtime: bool,
+}
+
+enum Event {
+    Tick(Vec<u8>),
+    Percept {
+        cell: u32,
+        bytes: Vec<u8>,
+    },
+    /// The world's batch of all genes of a cell.
+    Genes {
+        cell: u32,
+        bytes: Vec<u8>,
+    },
+    Hostile,
+    Presence {
+        alive: bool,
+        key: String,
+    },
+    Stop,
+}
+
+fn main() -> Result<()> {
+    // Without RUST_LOG: warnings, but not Zenoh's report of data that arrives for a cell
+    // subscription just undeclared (harmless: the cell is no longer needed).
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,zenoh::api::session=off"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    if !keys::valid_run_name(&args.run) {
+        bail!(
+            "--run {:?}: one key chunk of letters, digits, '_', '-', '.'",
+            args.run
+        );
+    }
+    let Some(range) = AgentRange::new(args.id, args.agents) else {
+        bail!("--agents must be at least 1 and the ids must fit in 32 bits");
+    };
+    if std::env::var_os(zenoh_bus::ZENOH_RUNTIME_ENV).is_none() {
+        // Before any thread exists: size Zenoh's internal pools for many processes.
+        std::env::set_var(zenoh_bus::ZENOH_RUNTIME_ENV, zenoh_bus::LEAN_ZENOH_RUNTIME);
+    }
+    let rt = zenoh_bus::runtime(args.threads)?;
+    rt.block_on(host_main(args, range))
+}
+
+async fn host_main(args: Args, range: AgentRange) -> Result<()> {
+    let session = zenoh_bus::open(&args.zenoh, Role::Client).await?;
+    let run = args.run.clone();
+    let (tx, mut rx) = unbounded_channel::<Event>();
+    // Presence first: we must notice the world going away even while joining.
+    let t = tx.clone();
+    let _presence = session
+        .liveliness()
+        .declare_subscriber(keys::all_presence(&run))
+        .history(true)
+        .callback(move |s| {
+            let alive = s.kind() == SampleKind::Put;
+            let _ = t.send(Event::Presence {
+                alive,
+                key: s.key_expr().as_str().to_owned(),
+            });
+        })
+        .await
+        .map_err(zerr)?;
+    spawn_signal_watch(tx.clone());
+    let (info, zenoh_rt) =
+        fetch_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
+    if range.last >= info.spec.agents {
+        bail!(
+            "agents {range} outside the run's {} agents",
+            info.spec.agents
+        );
+    }
+    let t = tx.clone();
+    let _tick = session
+        .declare_subscriber(keys::tick(&run))
+        .callback(move |s| {
+            let _ = t.send(Event::Tick(s.payload().to_bytes().into_owned()));
+        })
+        .await
+        .map_err(zerr)?;
+    let t = tx.clone();
+    let _ctl = session
+        .declare_subscriber(keys::ctl(&run, "stop"))
+        .callback(move |s| match decode::<Control>(&s.payload().to_bytes()) {
+            Ok(Control::Stop) => {
+                let _ = t.send(Event::Stop);
+            }
+            _ => {
+                let _ = t.send(Event::Hostile);
+            }
+        })
+        .await
+        .map_err(zerr)?;
+    let wide = match args.subscribe {
+        SubscribeArg::All => true,
+        SubscribeArg::Cells => false,
+        SubscribeArg::Auto => range.len() as usize * 4 >= info.geometry.cell_count(),
+    };
+    let mut host = Host::new(session.clone(), run.clone(), range, info, tx.clone(), wide)?;
+    host.subscribe_initial().await?;
+    let intents = session
+        .declare_publisher(keys::agents_action(&run, range))
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(zerr)?;
+    host.intent_pub = Some(intents);
+    // Declared after the subscriptions, so the world sees us only once we can hear it.
+    let token = session
+        .liveliness()
+        .declare_token(keys::agents_presence(&run, range))
+        .await
+        .map_err(zerr)?;
+    let work = async move {
+        let r = host.run(&mut rx).await;
+        drop(host);
+        r
+    };
+    // Run the agents on Zenoh's own (single-threaded, see LEAN_ZENOH_RUNTIME) runtime:
+    // receiving, deciding and sending then happen on one thread, with no hand-off
+    // between threads on each message.
+    let res = match zenoh_rt {
+        Some(h) if !args.separate_runtime => match h.spawn(work).await {
+            Ok(r) => r,
+            Err(e) => Err(anyhow::anyhow!("agent task: {e}")),
+        },
+        _ => work.await,
+    };
+    let _ = token.undeclare().await;
+    let _ = session.close().await;
+    res
+}
+
+fn zerr(e: zenoh::Error) -> anyhow::Error {
+    anyhow::anyhow!("zenoh: {e}")
+}
+
+fn spawn_signal_watch(tx: UnboundedSender<Event>) {
+    tokio::spawn(async move {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            let (Ok(mut term), Ok(mut int)) = (
+                signal(SignalKind::terminate()),
+                signal(SignalKind::interrupt()),
+            ) else {
+                return;
+            };
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = int.recv() => {}
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = tokio::signal::ctrl_c().await;
+        }
+        let _ = tx.send(Event::Stop);
+    });
+}
+
+/// Ask the world for the run's information, retrying until `patience` runs out. Also
+/// returns the handle of the runtime Zenoh delivers messages on (seen from the reply
+/// callback).
+async fn fetch_info(
+    session: &Session,
+    run: &str,
+    patience: Duration,
+) -> Result<(RunInfo, Option<tokio::runtime::Handle>)> {
+    let deadline = Instant::now() + patience;
+    loop {
+        let (tx, mut rx) = unbounded_channel();
+        session
+            .get(keys::info(run))
+            .timeout(Duration::from_secs(2))
+            .callback(move |reply| {
+                if let Ok(sample) = reply.result() {
+                    let handle = tokio::runtime::Handle::try_current().ok();
+                    let _ = tx.send((sample.payload().to_bytes().into_owned(), handle));
+                }
+            })
+            .await
+            .map_err(zerr)?;
+        if let Ok(Some((bytes, handle))) =
+            tokio::time::timeout(Duration::from_millis(2500), rx.recv()).await
+        {
+            match decode::<RunInfo>(&bytes) {
+                Ok(i) if i.spec.run == run => return Ok((i, handle)),
+                Ok(_) => tracing::warn!("run info of another run ignored"),
+                Err(e) => tracing::warn!("undecodable run info ignored: {e}"),
+            }
+        }
+        if Instant::now() >= deadline {
+            bail!(
+                "no world answered on {} within {} ms",
+                keys::info(run),
+                patience.as_millis()
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// Subscriptions of one cell (exact mode).
+struct CellSubs {
+    _percept: Subscriber<()>,
+    _genes: Subscriber<()>,
+    /// Last step for which the cell was a candidate.
+    wanted: u64,
+}
+
+/// Cells stay subscribed this many steps after they were last a candidate (agents
+/// often step back and forth across a cell border).
+const KEEP_STEPS: u64 = 2;
+
+/// A received gene batch, checked.
+struct Received {
+    step: u64,
+    cell: u32,
+    batch: GeneBatch,
+}
+
+struct Host {
+    session: Session,
+    run: String,
+    range: AgentRange,
+    info: RunInfo,
+    geom: Geometry,
+    learners: Vec<Learner>,
+    loss_streams: Vec<u64>,
+    tx: UnboundedSender<Event>,
+    wide: bool,
+    wide_subs: Vec<Subscriber<()>>,
+    subs: HashMap<u32, CellSubs>,
+    intent_pub: Option<Publisher<'static>>,
+    /// Last completed step.
+    done: u64,
+    /// Own agents the world counts as live (from the latest tick), by index.
+    live: Vec<bool>,
+    /// Centre cell each own agent was last seen in (where to subscribe while unseen).
+    last_cell: Vec<u32>,
+    /// The step whose percepts are being collected (0: none) and until when.
+    collecting: u64,
+    collect_deadline: Option<tokio::time::Instant>,
+    percepts: HashMap<u32, Percept>,
+    /// Own agent → the cell whose percept shows its centre, this step.
+    found: HashMap<AgentId, u32>,
+    genes: Vec<Received>,
+    /// (step, cell) of every gene aggregate received from the world.
+    heard: HashSet<(u64, u32)>,
+    present: BTreeMap<AgentRange, u32>,
+    counters: HostCounters,
+    stop: bool,
+    bare_tick: Option<u64>,
+}
+
+impl Host {
+    fn new(
+        session: Session,
+        run: String,
+        range: AgentRange,
+        info: RunInfo,
+        tx: UnboundedSender<Event>,
+        wide: bool,
+    ) -> Result<Self> {
+        let geom = info.geometry;
+        let mut learners = Vec::new();
+        let mut loss_streams = Vec::new();
+        if !info.spec.bare {
+            let cfg: LearnerConfig = serde_json::from_str(&info.spec.learner_json)
+                .context("learner configuration from the world")?;
+            cfg.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+            let grammar = Grammar::parse(&info.spec.grammar_text)
+                .map_err(|e| anyhow::anyhow!("grammar {}: {e}", info.spec.grammar_name))?;
+            let (cfg, grammar) = (Arc::new(cfg), Arc::new(grammar));
+            for id in range.ids() {
+                learners.push(Learner::new(
+                    id,
+                    cfg.clone(),
+                    grammar.clone(),
+                    geom,
+                    info.hub,
+                    info.spec.seed,
+                ));
+                loss_streams.push(
+                    derive(info.spec.seed, Owner::Agent(id), Purpose::Loss) ^ LOSS_SALT_PERCEPT,
+                );
+            }
+        }
+        let last_cell = range
+            .ids()
+            .map(|id| info.cells.get(id as usize).copied().unwrap_or(NO_CELL))
+            .collect();
+        Ok(Host {
+            session,
+            run,
+            range,
+            done: info.next_step.saturating_sub(1),
+            live: vec![false; range.len() as usize],
+            last_cell,
+            geom,
+            info,
+            learners,
+            loss_streams,
+            tx,
+            wide,
+            wide_subs: Vec::new(),
+            subs: HashMap::new(),
+            intent_pub: None,
+            collecting: 0,
+            collect_deadline: None,
+            percepts: HashMap::new(),
+            found: HashMap::new(),
+            genes: Vec::new(),
+            heard: HashSet::new(),
+            present: BTreeMap::new(),
+            counters: HostCounters::default(),
+            stop: false,
+            bare_tick: None,
+        })
+    }
+
+    fn bare(&self) -> bool {
+        self.info.spec.bare
+    }
+
+    fn idx(&self, id: AgentId) -> usize {
+        (id - self.range.first) as usize
+    }
+
+    async fn subscribe_initial(&mut self) -> Result<()> {
+        if self.bare() {
+            return Ok(());
+        }
+        if self.wide {
+            for key in [
+                keys::all_percepts(&self.run),
+                keys::all_cell_genes(&self.run),
+            ] {
+                let t = self.tx.clone();
+                let run = self.run.clone();
+                let geom = self.geom;
+                let sub = self
+                    .session
+                    .declare_subscriber(key)
+                    .callback(move |s| {
+                        let ev = match keys::parse(&run, s.key_expr().as_str()) {
+                            Parsed::Percept { cx, cy } => match cell_index(&geom, cx, cy) {
+                                Some(cell) => Event::Percept {
+                                    cell,
+                                    bytes: s.payload().to_bytes().into_owned(),
+                                },
+                                None => Event::Hostile,
+                            },
+                            Parsed::Genes { cx, cy, from: None } => match cell_index(&geom, cx, cy)
+                            {
+                                Some(cell) => Event::Genes {
+                                    cell,
+                                    bytes: s.payload().to_bytes().into_owned(),
+                                },
+                                None => Event::Hostile,
+                            },
+                            _ => Event::Hostile,
+                        };
+                        let _ = t.send(ev);
+                    })
+                    .await
+                    .map_err(zerr)?;
+                self.wide_subs.push(sub);
+            }
+            return Ok(());
+        }
+        let cells: Vec<u32> = self
+            .last_cell
+            .iter()
+            .copied()
+            .filter(|&c| c != NO_CELL)
+            .collect();
+        for c in cells {
+            self.want(c, self.done + 1).await?;
+        }
+        Ok(())
+    }
+
+    /// Make sure cell `cell` is subscribed and keep it for step `step`.
+    async fn want(&mut self, cell: u32, step: u64) -> Result<()> {
+        if let Some(s) = self.subs.get_mut(&cell) {
+            s.wanted = s.wanted.max(step);
+            return Ok(());
+        }
+        let (cx, cy) = self.geom.cell_col_row(cell);
+        let t = self.tx.clone();
+        let percept = self
+            .session
+            .declare_subscriber(keys::cell_percept(&self.run, cx, cy))
+            .callback(move |s| {
+                let _ = t.send(Event::Percept {
+                    cell,
+                    bytes: s.payload().to_bytes().into_owned(),
+                });
+            })
+            .await
+            .map_err(zerr)?;
+        let t = self.tx.clone();
+        let genes = self
+            .session
+            .declare_subscriber(keys::cell_genes(&self.run, cx, cy))
+            .callback(move |s| {
+                let _ = t.send(Event::Genes {
+                    cell,
+                    bytes: s.payload().to_bytes().into_owned(),
+                });
+            })
+            .await
+            .map_err(zerr)?;
+        self.subs.insert(
+            cell,
+            CellSubs {
+                _percept: percept,
+                _genes: genes,
+                wanted: step,
+            },
+        );
+        Ok(())
+    }
+
+    /// Every own live agent has been seen in a percept of the step being collected.
+    fn all_found(&self) -> bool {
+        self.range
+            .ids()
+            .all(|id| !self.live[self.idx(id)] || self.found.contains_key(&id))
+    }
+
+    async fn run(&mut self, rx: &mut UnboundedReceiver<Event>) -> Result<()> {
+        loop {
+            if self.stop {
+                return Ok(());
+            }
+            if let Some(t) = self.bare_tick.take() {
+                self.bare_step(t).await?;
+                continue;
+            }
+            if self.collecting > self.done {
+                let expired = self
+                    .collect_deadline
+                    .is_some_and(|d| tokio::time::Instant::now() >= d);
+                if self.all_found() || expired {
+                    self.step(self.collecting, rx).await?;
+                    continue;
+                }
+            }
+            let deadline = self.collect_deadline;
+            tokio::select! {
+                ev = rx.recv() => match ev {
+                    Some(ev) => self.absorb(ev),
+                    None => return Ok(()),
+                },
+                _ = async {
+                    match deadline {
+                        Some(d) => tokio::time::sleep_until(d).await,
+                        None => std::future::pending::<()>().await,
+                    }
+                } => {}
+            }
+        }
+    }
+
+    /// File an event.
+    fn absorb(&mut self, ev: Event) {
+        match ev {
+            Event::Tick(bytes) => match decode::<Tick>(&bytes) {
+                Ok(t) if self.bare() => {
+                    if t.step > self.done {
+                        self.bare_tick = Some(t.step);
+                    }
+                }
+                Ok(t) if t.cells.len() == self.info.spec.agents as usize => {
+                    // The live set from step t on (ticks precede that step's percepts).
+                    for id in self.range.ids() {
+                        let k = self.idx(id);
+                        let c = t.cells[id as usize];
+                        self.live[k] = c != NO_CELL;
+                        if c != NO_CELL {
+                            self.last_cell[k] = c;
+                        }
+                    }
+                }
+                _ => self.counters.hostile += 1,
+            },
+            Event::Percept { cell, bytes } => {
+                let p = match decode::<Percept>(&bytes) {
+                    Ok(p) if p.cell == cell => p,
+                    _ => {
+                        self.counters.hostile += 1;
+                        return;
+                    }
+                };
+                if p.step <= self.done || p.step < self.collecting {
+                    return; // stale
+                }
+                if p.step > self.collecting {
+                    self.collecting = p.step;
+                    self.percepts.clear();
+                    self.found.clear();
+                    self.collect_deadline = Some(
+                        tokio::time::Instant::now()
+                            + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64),
+                    );
+                }
+                for a in &p.agents {
+                    if self.range.contains(a.id) && a.live && self.geom.cell_of(a.pos) == cell {
+                        self.found.insert(a.id, cell);
+                    }
+                }
+                self.percepts.insert(cell, p);
+            }
+            Event::Genes { cell, bytes } => match decode::<GeneBatch>(&bytes) {
+                Ok(b) if b.cell == cell && b.genes.iter().all(|g| g.step == b.step) => {
+                    if b.step > self.done {
+                        self.heard.insert((b.step, cell));
+                        self.genes.push(Received {
+                            step: b.step,
+                            cell,
+                            batch: b,
+                        });
+                    }
+                }
+                _ => self.counters.hostile += 1,
+            },
+            Event::Hostile => self.counters.hostile += 1,
+            Event::Presence { alive, key } => match keys::parse(&self.run, &key) {
+                Parsed::WorldPresence if !alive => {
+                    tracing::info!("agents {}: the world left; exiting", self.range);
+                    self.stop = true;
+                }
+                Parsed::AgentsPresence { agents } => {
+                    let c = self.present.entry(agents).or_insert(0);
+                    if alive {
+                        *c += 1;
+                    } else {
+                        *c = c.saturating_sub(1);
+                        if *c == 0 {
+                            self.present.remove(&agents);
+                        }
+                    }
+                }
+                _ => {}
+            },
+            Event::Stop => self.stop = true,
+        }
+    }
+
+    /// Wait for events until `done(self)` holds or `deadline` passes; false on timeout.
+    async fn wait_until(
+        &mut self,
+        rx: &mut UnboundedReceiver<Event>,
+        deadline: Instant,
+        done: impl Fn(&Self) -> bool,
+    ) -> bool {
+        loop {
+            if done(self) {
+                return true;
+            }
+            if self.stop {
+                return false;
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            match tokio::time::timeout(left, rx.recv()).await {
+                Ok(Some(ev)) => self.absorb(ev),
+                Ok(None) => {
+                    self.stop = true;
+                    return false;
+                }
+                Err(_) => return done(self),
+            }
+        }
+    }
+
+    async fn publish_intents(&mut self, batch: IntentBatch) -> Result<()> {
+        let bytes = encode(&batch)?;
+        if let Some(p) = &self.intent_pub {
+            p.put(bytes).await.map_err(zerr)?;
+        }
+        Ok(())
+    }
+
+    async fn bare_step(&mut self, step: u64) -> Result<()> {
+        let batch = IntentBatch {
+            step,
+            intents: Vec::new(),
+            idle: self.range.ids().collect(),
+            counters: std::mem::take(&mut self.counters),
+        };
+        self.publish_intents(batch).await?;
+        self.done = step;
+        Ok(())
+    }
+
+    async fn step(&mut self, t: u64, rx: &mut UnboundedReceiver<Event>) -> Result<()> {
+        let spec_deadlines = self.info.spec.deadlines;
+        let own: Vec<AgentId> = self
+            .range
+            .ids()
+            .filter(|&id| self.live[self.idx(id)])
+            .collect();
+        // 1–2. Percepts, then begin: genes to offer, agents that idle.
+        let p_loss = self.info.spec.loss.percept;
+        let mut idle: Vec<AgentId> = Vec::new();
+        let mut active: Vec<(AgentId, u32)> = Vec::new();
+        let mut local: HashMap<u32, Vec<GeneMsg>> = HashMap::new();
+        let mut absent: HashMap<u32, Vec<AgentId>> = HashMap::new();
+        for &id in &own {
+            let k = self.idx(id);
+            let Some(&c) = self.found.get(&id) else {
+                // Its percept never came: it idles (its mates do not know it is there).
+                self.counters.percepts_missing += 1;
+                idle.push(id);
+                continue;
+            };
+            self.last_cell[k] = c;
+            if p_loss > 0.0 && loss_draw(self.loss_streams[k], t, 0) < p_loss {
+                self.counters.percepts_lost += 1;
+                idle.push(id);
+                absent.entry(c).or_default().push(id);
+                continue;
+            }
+            let Some(percept) = self.percepts.get(&c) else {
+                continue;
+            };
+            if let Some(g) = self.learners[k].begin_step(percept) {
+                local.entry(c).or_default().push(g);
+            }
+            active.push((id, c));
+        }
+        // Publish our genes in cells where an agent of another process has its centre.
+        let mut out_cells: Vec<u32> = local.keys().chain(absent.keys()).copied().collect();
+        out_cells.sort_unstable();
+        out_cells.dedup();
+        for c in out_cells {
+            let outsiders = self.percepts.get(&c).is_some_and(|p| {
+                p.agents
+                    .iter()
+                    .any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
+            });
+            if !outsiders {
+                continue;
+            }
+            let batch = GeneBatch {
+                step: t,
+                cell: c,
+                genes: local.get(&c).cloned().unwrap_or_default(),
+                absent: absent.get(&c).cloned().unwrap_or_default(),
+            };
+            let bytes = encode(&batch)?;
+            let (cx, cy) = self.geom.cell_col_row(c);
+            self.session
+                .put(keys::cell_genes_from(&self.run, cx, cy, self.range), bytes)
+                .congestion_control(CongestionControl::Block)
+                .await
+                .map_err(zerr)?;
+        }
+        // Which remote cell-mates each cell waits for: expected mates of another process
+        // whose centre is in the cell (others publish elsewhere and count as lost).
+        let mut wait_for: HashMap<u32, Vec<AgentId>> = HashMap::new();
+        for &(id, c) in &active {
+            let k = self.idx(id);
+            let Some(p) = self.percepts.get(&c) else {
+                continue;
+            };
+            for &m in self.learners[k].expected_mates() {
+                if self.range.contains(m) {
+                    continue;
+                }
+                if p.agents
+                    .iter()
+                    .any(|a| a.id == m && self.geom.cell_of(a.pos) == c)
+                {
+                    wait_for.entry(c).or_default().push(m);
+                }
+            }
+        }
+        for v in wait_for.values_mut() {
+            v.sort_unstable();
+            v.dedup();
+        }
+        if !wait_for.is_empty() {
+            // One aggregate per shared cell, sent once every process there has spoken.
+            let deadline = Instant::now() + Duration::from_millis(spec_deadlines.gene_ms as u64);
+            let satisfied = |h: &Self| {
+                wait_for.iter().all(|(&c, mates)| {
+                    h.heard.contains(&(t, c)) || mates.iter().all(|&m| !h.is_present(m))
+                })
+            };
+            if !self.wait_until(rx, deadline, satisfied).await {
+                if self.stop {
+                    return Ok(());
+                }
+                let late = wait_for
+                    .iter()
+                    .filter(|(&c, _)| !self.heard.contains(&(t, c)))
+                    .map(|(_, mates)| mates.len() as u32)
+                    .sum::<u32>();
+                self.counters.genes_late += late;
+            }
+        }
+        // 3. Finish: act, learn, intents.
+        let mut intents: Vec<Intent> = Vec::with_capacity(active.len());
+        let mut cell_genes: HashMap<u32, Vec<GeneMsg>> = HashMap::new();
+        let range = self.range;
+        for &(id, c) in &active {
+            let k = self.idx(id);
+            let genes = cell_genes.entry(c).or_insert_with(|| {
+                let mut v = local.get(&c).cloned().unwrap_or_default();
+                for r in &self.genes {
+                    if r.step == t && r.cell == c {
+                        v.extend(
+                            r.batch
+                                .genes
+                                .iter()
+                                .filter(|g| !range.contains(g.from))
+                                .cloned(),
+                        );
+                    }
+                }
+                v
+            });
+            intents.push(self.learners[k].finish_step(genes));
+        }
+        // Subscriptions for step t+1: where each agent is, and where its moves lead.
+        if !self.wide {
+            let mut next: Vec<u32> = own
+                .iter()
+                .map(|&id| self.last_cell[self.idx(id)])
+                .filter(|&c| c != NO_CELL)
+                .collect();
+            for i in &intents {
+                for op in &i.ops {
+                    if let Op::Move { to, .. } = op {
+                        next.push(self.geom.cell_of(*to));
+                    }
+                }
+            }
+            next.sort_unstable();
+            next.dedup();
+            for c in next {
+                self.want(c, t + 1).await?;
+            }
+            self.subs.retain(|_, s| s.wanted + KEEP_STEPS > t);
+        }
+        let batch = IntentBatch {
+            step: t,
+            intents,
+            idle,
+            counters: std::mem::take(&mut self.counters),
+        };
+        self.publish_intents(batch).await?;
+        self.done = t;
+        self.collect_deadline = None;
+        self.percepts.clear();
+        self.found.clear();
+        self.genes.retain(|r| r.step > t);
+        self.heard.retain(|&(s, _)| s > t);
+        Ok(())
+    }
+
+    /// Is some process speaking for agent `m` present?
+    fn is_present(&self, m: AgentId) -> bool {
+        self.present.keys().any(|r| r.contains(m))
+    }
+}
+
+fn cell_index(geom: &Geometry, cx: i32, cy: i32) -> Option<u32> {
+    (cx >= 0 && cy >= 0 && cx < geom.cols() && cy < geom.rows())
+        .then(|| (cy * geom.cols() + cx) as u32)
+}

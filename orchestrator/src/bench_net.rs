@@ -1,0 +1,189 @@
+//! `geese bench-net`: throughput of the distributed runtime on this machine.
+//!
+//! For each scenario (P agent processes × K agents each) it runs, in the same
+//! invocation, the **bare** lock-step over the same process topology (the world sends a
+//! tick, every agent process answers at once with an empty batch: the bus alone) and the
+//! **learning** run (the default foraging trial with P·K agents), and prints wall time,
+//! steps per second (from the first step report to the last, start-up excluded), the
+//! ratio learning/bare, and the resident memory per agent process. It prints figures;
+//! it asserts nothing.
+use crate::config::RunConfig;
+use crate::launch::{run_net, NetOptions, NetOutcome};
+use anyhow::{bail, Context, Result};
+use std::path::PathBuf;
+
+#[derive(clap::Args, Clone, Debug)]
+pub struct BenchNetArgs {
+    /// Scenarios PxK[:STEPS] (P agent processes hosting K agents each, STEPS learning
+    /// steps), comma-separated.
+    #[arg(long, default_value = "10x1,100x1,300x1,10x100")]
+    pub scenarios: String,
+    /// Learning steps of a scenario without :STEPS.
+    #[arg(long, default_value_t = 12_000)]
+    pub steps: u64,
+    /// Steps of the bare lock-step measurement.
+    #[arg(long, default_value_t = 2_000)]
+    pub bare_steps: u64,
+    /// Skip the learning runs (bare lock-step only).
+    #[arg(long)]
+    pub bare_only: bool,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Directory of geese-world and geese-agent [default: next to geese].
+    #[arg(long)]
+    pub bin_dir: Option<PathBuf>,
+    /// How agent processes subscribe to cells: auto, cells or all.
+    #[arg(long)]
+    pub subscribe: Option<String>,
+    #[command(flatten)]
+    pub zenoh: geese_proto::zenoh_bus::CommonArgs,
+}
+
+/// One scenario: processes × agents per process, learning steps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Scenario {
+    pub processes: u32,
+    pub per_process: u32,
+    pub steps: u64,
+}
+
+/// Parse `PxK[:STEPS],...`.
+pub fn parse_scenarios(s: &str, default_steps: u64) -> Result<Vec<Scenario>> {
+    let mut v = Vec::new();
+    for item in s.split(',').map(str::trim).filter(|x| !x.is_empty()) {
+        let (pk, steps) = match item.split_once(':') {
+            Some((pk, st)) => (
+                pk,
+                st.parse()
+                    .with_context(|| format!("scenario {item:?}: bad STEPS"))?,
+            ),
+            None => (item, default_steps),
+        };
+        let (p, k) = pk
+            .split_once('x')
+            .with_context(|| format!("scenario {item:?}: expected PxK[:STEPS]"))?;
+        let processes: u32 = p
+            .parse()
+            .with_context(|| format!("scenario {item:?}: bad P"))?;
+        let per_process: u32 = k
+            .parse()
+            .with_context(|| format!("scenario {item:?}: bad K"))?;
+        if processes == 0 || per_process == 0 || steps == 0 {
+            bail!("scenario {item:?}: P, K and STEPS must be positive");
+        }
+        v.push(Scenario {
+            processes,
+            per_process,
+            steps,
+        });
+    }
+    Ok(v)
+}
+
+fn run(args: &BenchNetArgs, sc: Scenario, bare: bool) -> Result<NetOutcome> {
+    let mut cfg = RunConfig::default();
+    cfg.world.agents = sc.processes * sc.per_process;
+    cfg.steps = if bare { args.bare_steps } else { sc.steps };
+    cfg.seed = args.seed;
+    let spec = cfg.validate()?;
+    let opts = NetOptions {
+        processes: sc.processes,
+        agents_per_process: Some(sc.per_process),
+        zenoh: args.zenoh.clone(),
+        bin_dir: args.bin_dir.clone(),
+        bare,
+        subscribe: args.subscribe.clone(),
+        quiet_children: true,
+        ..NetOptions::default()
+    };
+    Ok(run_net(&spec, &opts, |_, _| {})?)
+}
+
+fn mib(kib: f64) -> f64 {
+    kib / 1024.0
+}
+
+pub fn bench_net_cmd(args: BenchNetArgs) -> Result<()> {
+    let scenarios = parse_scenarios(&args.scenarios, args.steps)?;
+    println!(
+        "geese bench-net: {} scenario(s) on {} cores; bare = tick out, empty replies back; learning = foraging, seed {}",
+        scenarios.len(),
+        std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+        args.seed
+    );
+    for sc in scenarios {
+        let agents = sc.processes * sc.per_process;
+        let label = format!(
+            "{} process(es) x {} agent(s) = {agents} agents",
+            sc.processes, sc.per_process
+        );
+        let bare = run(&args, sc, true).with_context(|| format!("{label}: bare lock-step"))?;
+        let bare_rate = bare.reports as f64 / bare.run_seconds.max(1e-9);
+        println!(
+            "{label}: bare lock-step {} steps in {:.2} s = {:.1} steps/s (wall with start-up {:.1} s)",
+            bare.reports, bare.run_seconds, bare_rate, bare.wall_seconds
+        );
+        if args.bare_only {
+            continue;
+        }
+        let learn = run(&args, sc, false).with_context(|| format!("{label}: learning run"))?;
+        let rate = learn.reports as f64 / learn.run_seconds.max(1e-9);
+        let rss = &learn.agent_rss_kib;
+        let (mean, max) = if rss.is_empty() {
+            (0.0, 0.0)
+        } else {
+            (
+                rss.iter().sum::<u64>() as f64 / rss.len() as f64,
+                *rss.iter().max().unwrap_or(&0) as f64,
+            )
+        };
+        println!(
+            "{label}: learning {} steps in {:.2} s = {:.1} steps/s ({:.0} agent-steps/s), {:.3} of bare; \
+             wall with start-up {:.1} s; final task {:.2} %",
+            learn.reports,
+            learn.run_seconds,
+            rate,
+            rate * agents as f64,
+            rate / bare_rate.max(1e-9),
+            learn.wall_seconds,
+            learn.summary.final_task_pct
+        );
+        println!(
+            "{label}: RSS per agent process {:.1} MiB mean, {:.1} MiB max ({:.2} MiB per agent); world server {:.1} MiB",
+            mib(mean),
+            mib(max),
+            mib(mean) / sc.per_process as f64,
+            mib(learn.world_rss_kib.unwrap_or(0) as f64)
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scenarios_parse() {
+        let v = parse_scenarios("10x1, 100x1:500,10x100", 12_000).unwrap();
+        assert_eq!(
+            v[0],
+            Scenario {
+                processes: 10,
+                per_process: 1,
+                steps: 12_000
+            }
+        );
+        assert_eq!(
+            v[1],
+            Scenario {
+                processes: 100,
+                per_process: 1,
+                steps: 500
+            }
+        );
+        assert_eq!(v[2].per_process, 100);
+        assert!(parse_scenarios("10", 1).is_err());
+        assert!(parse_scenarios("0x1", 1).is_err());
+    }
+}

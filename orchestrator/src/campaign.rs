@@ -1,0 +1,747 @@
+//! Campaigns: a grid of conditions × tasks × seeds, run in parallel and stored as each
+//! trial finishes, so that an interrupted campaign resumes where it stopped.
+//!
+//! A campaign file (TOML) holds a base run configuration (`[base]`, the same keys as a
+//! `geese run` config file), one or more `[[grid]]` tables whose keys are
+//! [`Knob`]s with arrays of levels (each table is a Cartesian product; the campaign's
+//! conditions are the union of the tables, duplicates removed), the tasks and the seeds.
+//! Every value is checked before anything runs; errors name the key.
+//!
+//! Running a trial goes through the [`TrialRunner`] trait: [`InProcess`] runs it on the
+//! in-memory transport; a distributed runner (one trial over Zenoh) plugs in there.
+use crate::condition::{Condition, Coupling, Knob, Level, DEFAULT_STOP_INTERVAL};
+use crate::config::{RunConfig, RunSpec};
+use crate::metrics::{self, EfficiencyVariant};
+use crate::output::text_digest;
+use crate::store::{Store, StoreError, TrialRecord, TrialResult};
+use crate::trial::{run_trial, TrialSummary};
+use geese_proto::StepReport;
+use geese_world::Task;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+/// The campaign file as written.
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct CampaignFile {
+    /// Short name (default: the file stem); also the default database name.
+    pub name: Option<String>,
+    #[serde(default)]
+    pub description: String,
+    /// Tasks every condition runs on.
+    pub tasks: Vec<Task>,
+    /// Seeds per (condition, task): `first_seed`, `first_seed + 1`, …
+    pub seeds: u32,
+    #[serde(default = "one")]
+    pub first_seed: u64,
+    /// Knob on the x axis of the plots and of the fitted line (required when several
+    /// knobs vary); `"condition"` puts each condition at its own position.
+    pub x: Option<String>,
+    /// Optional second knob: learning curves are drawn per level of it, box plots
+    /// grouped by it (Fig. 4b: x = "ip", series = "st").
+    pub series: Option<String>,
+    /// An obstacle addition also pauses lateral transfer (reference coupling, §1.8).
+    #[serde(default)]
+    pub lt_pause_on_obstacles: bool,
+    #[serde(default = "default_stop_interval")]
+    pub stop_interval: u64,
+    /// Which reference-code efficiency `geese report --efficiency code` uses.
+    #[serde(default)]
+    pub code_efficiency: Option<EfficiencyVariant>,
+    /// Store every k-th step row (the last step is always stored); metrics are computed
+    /// from every step before thinning.
+    #[serde(default = "one")]
+    pub step_stride: u64,
+    #[serde(default)]
+    pub base: RunConfig,
+    #[serde(default)]
+    pub grid: Vec<toml::Table>,
+}
+
+fn one() -> u64 {
+    1
+}
+fn default_stop_interval() -> u64 {
+    DEFAULT_STOP_INTERVAL
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CampaignError {
+    #[error("cannot read campaign {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("campaign {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("campaign: {key}: {reason}")]
+    Invalid { key: String, reason: String },
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("the thread pool could not start: {0}")]
+    Pool(String),
+}
+
+fn invalid(key: impl Into<String>, reason: impl Into<String>) -> CampaignError {
+    CampaignError::Invalid {
+        key: key.into(),
+        reason: reason.into(),
+    }
+}
+
+/// One planned trial.
+#[derive(Clone, Debug)]
+pub struct PlannedTrial {
+    /// Index into [`Campaign::conditions`].
+    pub condition: usize,
+    pub task: Task,
+    pub seed: u64,
+}
+
+/// A validated campaign: conditions expanded, every configuration checked.
+#[derive(Clone, Debug)]
+pub struct Campaign {
+    pub name: String,
+    pub file: CampaignFile,
+    /// The file's text, for the manifest.
+    pub text: String,
+    pub conditions: Vec<Condition>,
+    pub x: Option<Knob>,
+    /// `x = "condition"`: conditions are the x levels, in grid order.
+    pub x_by_condition: bool,
+    pub series: Option<Knob>,
+    pub coupling: Coupling,
+    /// Validated run spec per (condition, task), seed not yet set.
+    specs: Vec<Vec<Arc<RunSpec>>>,
+}
+
+impl Campaign {
+    /// Read and validate a campaign file.
+    pub fn from_file(path: &Path) -> Result<Campaign, CampaignError> {
+        let text = std::fs::read_to_string(path).map_err(|source| CampaignError::Read {
+            path: path.into(),
+            source,
+        })?;
+        let stem = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "campaign".into());
+        Campaign::from_toml(&text, &stem).map_err(|e| match e {
+            CampaignError::Parse { message, .. } => CampaignError::Parse {
+                path: path.into(),
+                message,
+            },
+            other => other,
+        })
+    }
+
+    /// Parse and validate campaign text; `default_name` is used when the file has none.
+    pub fn from_toml(text: &str, default_name: &str) -> Result<Campaign, CampaignError> {
+        let file: CampaignFile = toml::from_str(text).map_err(|e| CampaignError::Parse {
+            path: PathBuf::from("<text>"),
+            message: e.to_string(),
+        })?;
+        Campaign::new(file, text.to_string(), default_name)
+    }
+
+    /// Validate a parsed campaign file.
+    pub fn new(
+        file: CampaignFile,
+        text: String,
+        default_name: &str,
+    ) -> Result<Campaign, CampaignError> {
+        let name = file
+            .name
+            .clone()
+            .unwrap_or_else(|| default_name.to_string());
+        if name.trim().is_empty() || name.contains(['/', '\\']) {
+            return Err(invalid(
+                "name",
+                "must be a non-empty name without path separators",
+            ));
+        }
+        if file.tasks.is_empty() {
+            return Err(invalid(
+                "tasks",
+                "is empty: name at least one task (\"foraging\", \"nest\")",
+            ));
+        }
+        let mut seen = HashSet::new();
+        for t in &file.tasks {
+            if !seen.insert(*t) {
+                return Err(invalid("tasks", format!("{t} is listed twice")));
+            }
+        }
+        if file.seeds == 0 {
+            return Err(invalid("seeds", "must be at least 1"));
+        }
+        if file.first_seed.checked_add(file.seeds as u64).is_none() {
+            return Err(invalid("first_seed", "too large"));
+        }
+        if file.stop_interval == 0 {
+            return Err(invalid("stop_interval", "must be at least 1"));
+        }
+        if file.step_stride == 0 {
+            return Err(invalid("step_stride", "must be at least 1"));
+        }
+        let conditions = expand_grid(&file.grid)?;
+        let coupling = Coupling {
+            lt_pause_on_obstacles: file.lt_pause_on_obstacles,
+            stop_interval: file.stop_interval,
+        };
+        let pick = |key: &str, v: &Option<String>| -> Result<Option<Knob>, CampaignError> {
+            let Some(name) = v else { return Ok(None) };
+            let k = Knob::from_name(name).ok_or_else(|| {
+                invalid(
+                    key,
+                    format!("'{name}' is not a knob (one of: {})", Knob::names()),
+                )
+            })?;
+            if let Some(c) = conditions.iter().find(|c| c.get(k).is_none()) {
+                return Err(invalid(
+                    key,
+                    format!("'{name}' is not set in condition '{}'", c.label()),
+                ));
+            }
+            Ok(Some(k))
+        };
+        let x_by_condition = file.x.as_deref() == Some("condition");
+        let mut x = if x_by_condition {
+            None
+        } else {
+            pick("x", &file.x)?
+        };
+        let series = pick("series", &file.series)?;
+        if x.is_none() && !x_by_condition {
+            // The one knob whose level differs between conditions, if it is set in all.
+            let varying: Vec<Knob> = Knob::ALL
+                .iter()
+                .copied()
+                .filter(|&k| {
+                    let first = conditions[0].get(k);
+                    conditions.iter().any(|c| c.get(k) != first)
+                })
+                .collect();
+            match varying.as_slice() {
+                [] => {}
+                [k] if conditions.iter().all(|c| c.get(*k).is_some()) => x = Some(*k),
+                _ => {
+                    let names: Vec<_> = varying.iter().map(|k| k.name()).collect();
+                    return Err(invalid(
+                        "x",
+                        format!(
+                            "several knobs vary ({}): name the one to plot, or x = \"condition\"",
+                            names.join(", ")
+                        ),
+                    ));
+                }
+            }
+        }
+        // Build and validate every (condition, task) configuration once.
+        let mut specs = Vec::with_capacity(conditions.len());
+        for (ci, c) in conditions.iter().enumerate() {
+            let mut per_task = Vec::new();
+            for &task in &file.tasks {
+                let where_ = format!("grid condition {} ('{}'), task {task}", ci + 1, c.label());
+                let cfg = c
+                    .apply(&file.base, task, file.first_seed, coupling)
+                    .map_err(|e| invalid(e.knob, format!("{} ({where_})", e.reason)))?;
+                let spec = cfg
+                    .validate()
+                    .map_err(|e| invalid(format!("base or grid ({where_})"), e.to_string()))?;
+                per_task.push(Arc::new(spec));
+            }
+            specs.push(per_task);
+        }
+        Ok(Campaign {
+            name,
+            file,
+            text,
+            conditions,
+            x,
+            x_by_condition,
+            series,
+            coupling,
+            specs,
+        })
+    }
+
+    /// Every trial of the campaign, in a fixed order: condition, task, seed.
+    pub fn plan(&self) -> Vec<PlannedTrial> {
+        let mut v = Vec::new();
+        for ci in 0..self.conditions.len() {
+            for &task in &self.file.tasks {
+                for s in 0..self.file.seeds as u64 {
+                    v.push(PlannedTrial {
+                        condition: ci,
+                        task,
+                        seed: self.file.first_seed + s,
+                    });
+                }
+            }
+        }
+        v
+    }
+
+    /// The validated run of a planned trial.
+    pub fn spec(&self, t: &PlannedTrial) -> RunSpec {
+        let ti = self
+            .file
+            .tasks
+            .iter()
+            .position(|&x| x == t.task)
+            .unwrap_or(0);
+        let mut spec = (*self.specs[t.condition][ti]).clone();
+        spec.config.seed = t.seed;
+        spec
+    }
+
+    /// Position of a condition on the x axis: the x knob's numeric level, or for a text
+    /// knob the index of its level in order of first appearance.
+    pub fn x_of(&self, condition: usize) -> (f64, String) {
+        if self.x_by_condition {
+            return (condition as f64, self.conditions[condition].label());
+        }
+        level_position(&self.conditions, self.x, condition)
+    }
+
+    /// Label of a condition's series level (empty without a series knob).
+    pub fn series_of(&self, condition: usize) -> String {
+        self.series
+            .and_then(|k| self.conditions[condition].get(k))
+            .map(|l| l.to_string())
+            .unwrap_or_default()
+    }
+
+    /// Build a planned trial's record (key and configuration) for the store.
+    pub fn record(&self, t: &PlannedTrial) -> TrialRecord {
+        let c = &self.conditions[t.condition];
+        let spec = self.spec(t);
+        let (x, x_label) = self.x_of(t.condition);
+        TrialRecord {
+            condition: c.label(),
+            condition_json: c.to_json().to_string(),
+            condition_index: t.condition as i64,
+            x,
+            x_label,
+            series: self.series_of(t.condition),
+            task: t.task.to_string(),
+            seed: t.seed,
+            config_json: serde_json::to_string(&spec.config).unwrap_or_default(),
+            grammar: spec.grammar_name.clone(),
+            grammar_digest: text_digest(&spec.grammar_text),
+        }
+    }
+
+    /// Digest of the campaign's definition (for the manifest).
+    pub fn digest(&self) -> String {
+        text_digest(&self.text)
+    }
+}
+
+fn level_position(conditions: &[Condition], knob: Option<Knob>, condition: usize) -> (f64, String) {
+    let Some(k) = knob else {
+        return (0.0, String::new());
+    };
+    let Some(level) = conditions[condition].get(k) else {
+        return (0.0, String::new());
+    };
+    match level.as_f64() {
+        Some(v) => (v, level.to_string()),
+        None => {
+            let mut order: Vec<String> = Vec::new();
+            for c in conditions {
+                if let Some(l) = c.get(k) {
+                    let s = l.to_string();
+                    if !order.contains(&s) {
+                        order.push(s);
+                    }
+                }
+            }
+            let s = level.to_string();
+            (order.iter().position(|o| *o == s).unwrap_or(0) as f64, s)
+        }
+    }
+}
+
+/// Expand the `[[grid]]` tables into conditions (union of Cartesian products).
+pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError> {
+    if grid.is_empty() {
+        return Err(invalid(
+            "grid",
+            "no conditions: add a [[grid]] table with at least one knob",
+        ));
+    }
+    let mut out: Vec<Condition> = Vec::new();
+    let mut labels = HashSet::new();
+    for (gi, table) in grid.iter().enumerate() {
+        if table.is_empty() {
+            return Err(invalid(
+                format!("grid[{gi}]"),
+                "is empty: give at least one knob",
+            ));
+        }
+        let mut axes: Vec<(Knob, Vec<Level>)> = Vec::new();
+        for (key, value) in table {
+            let path = format!("grid[{gi}].{key}");
+            let knob = Knob::from_name(key).ok_or_else(|| {
+                invalid(&path, format!("unknown knob (known: {})", Knob::names()))
+            })?;
+            let values: Vec<&toml::Value> = match value {
+                toml::Value::Array(a) => a.iter().collect(),
+                scalar => vec![scalar],
+            };
+            if values.is_empty() {
+                return Err(invalid(&path, "is an empty list"));
+            }
+            let mut levels = Vec::new();
+            for (i, v) in values.iter().enumerate() {
+                let l = knob
+                    .level(v)
+                    .map_err(|r| invalid(format!("{path}[{i}]"), r))?;
+                if levels.contains(&l) {
+                    return Err(invalid(
+                        format!("{path}[{i}]"),
+                        format!("{l} is listed twice"),
+                    ));
+                }
+                levels.push(l);
+            }
+            axes.push((knob, levels));
+        }
+        axes.sort_by_key(|(k, _)| *k);
+        // Cartesian product, first axis slowest.
+        let mut conds = vec![Condition::default()];
+        for (k, levels) in &axes {
+            let mut next = Vec::with_capacity(conds.len() * levels.len());
+            for c in &conds {
+                for l in levels {
+                    let mut c = c.clone();
+                    c.levels.push((*k, l.clone()));
+                    next.push(c);
+                }
+            }
+            conds = next;
+        }
+        for c in conds {
+            if labels.insert(c.label()) {
+                out.push(c);
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Error of one trial, as recorded in the store.
+pub type TrialError = Box<dyn std::error::Error + Send + Sync>;
+
+/// Runs one trial: the hook where the transport is chosen. The in-process runner is
+/// [`InProcess`]; a runner that starts a world and agent processes over Zenoh implements
+/// the same trait and is handed to [`run_campaign`].
+pub trait TrialRunner: Sync {
+    /// Transport name recorded with every trial ("in-process", "zenoh", …).
+    fn transport(&self) -> &str;
+    /// Run `spec` to the end, calling `observe` after every step, in step order.
+    fn run(
+        &self,
+        spec: &RunSpec,
+        observe: &mut dyn FnMut(&StepReport),
+    ) -> Result<TrialSummary, TrialError>;
+}
+
+/// Trials on the in-memory transport, in the calling thread.
+pub struct InProcess;
+
+impl TrialRunner for InProcess {
+    fn transport(&self) -> &str {
+        "in-process"
+    }
+    fn run(
+        &self,
+        spec: &RunSpec,
+        observe: &mut dyn FnMut(&StepReport),
+    ) -> Result<TrialSummary, TrialError> {
+        Ok(run_trial(spec, observe)?)
+    }
+}
+
+/// How to run a campaign.
+#[derive(Clone, Debug, Default)]
+pub struct RunOptions {
+    /// Trials at once (0 = one per core).
+    pub jobs: usize,
+    /// Run failed trials of an earlier invocation again.
+    pub retry_failed: bool,
+    /// No progress bar.
+    pub quiet: bool,
+}
+
+/// What a campaign invocation did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CampaignOutcome {
+    pub planned: usize,
+    /// Found finished in the store and skipped.
+    pub skipped: usize,
+    pub done: usize,
+    pub failed: usize,
+    pub wall_seconds: f64,
+}
+
+/// Run every trial of `campaign` not yet in `store`, `jobs` at a time, writing each
+/// trial (summary and step rows) in one transaction as soon as it finishes.
+pub fn run_campaign(
+    campaign: &Campaign,
+    store: &mut Store,
+    runner: &dyn TrialRunner,
+    opts: &RunOptions,
+) -> Result<CampaignOutcome, CampaignError> {
+    let start = std::time::Instant::now();
+    let session = store.begin_session(campaign)?;
+    let plan = campaign.plan();
+    let mut pending = Vec::new();
+    let mut skipped = 0;
+    for t in &plan {
+        let rec = campaign.record(t);
+        match store.find(&rec)? {
+            Some(status) if status == "done" || (status == "failed" && !opts.retry_failed) => {
+                skipped += 1
+            }
+            Some(_) => {
+                store.remove(&rec)?;
+                pending.push((t.clone(), rec));
+            }
+            None => pending.push((t.clone(), rec)),
+        }
+    }
+    let bar = if opts.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(pending.len() as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:40} {pos}/{len} trials  [{elapsed_precise} < {eta_precise}]  {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(opts.jobs)
+        .thread_name(|i| format!("geese-trial-{i}"))
+        .build()
+        .map_err(|e| CampaignError::Pool(e.to_string()))?;
+    let stop = AtomicBool::new(false);
+    let (tx, rx) = std::sync::mpsc::channel::<(TrialRecord, TrialResult)>();
+    let stride = campaign.file.step_stride;
+    let mut out = CampaignOutcome {
+        planned: plan.len(),
+        skipped,
+        ..Default::default()
+    };
+    let mut write_error: Option<StoreError> = None;
+    std::thread::scope(|s| {
+        let pending = &pending;
+        let stop = &stop;
+        s.spawn(move || {
+            pool.install(|| {
+                use rayon::prelude::*;
+                pending.par_iter().for_each_with(tx, |tx, (t, rec)| {
+                    if stop.load(Ordering::Relaxed) {
+                        return;
+                    }
+                    let spec = campaign.spec(t);
+                    let result = run_one(runner, &spec, stride);
+                    let _ = tx.send((rec.clone(), result));
+                });
+            });
+        });
+        for (rec, result) in rx {
+            if write_error.is_some() {
+                continue;
+            }
+            let ok = result.error.is_none();
+            match store.insert(&rec, &result, session, runner.transport()) {
+                Ok(()) => {
+                    if ok {
+                        out.done += 1;
+                    } else {
+                        out.failed += 1;
+                        bar.println(format!(
+                            "trial failed: {} task {} seed {}: {}",
+                            rec.condition,
+                            rec.task,
+                            rec.seed,
+                            result.error.as_deref().unwrap_or("")
+                        ));
+                    }
+                    bar.inc(1);
+                    bar.set_message(format!("{} done, {} failed", out.done, out.failed));
+                }
+                Err(e) => {
+                    stop.store(true, Ordering::Relaxed);
+                    write_error = Some(e);
+                }
+            }
+        }
+    });
+    bar.finish_and_clear();
+    if let Some(e) = write_error {
+        return Err(e.into());
+    }
+    out.wall_seconds = start.elapsed().as_secs_f64();
+    store.end_session(session, &out)?;
+    Ok(out)
+}
+
+/// Run one trial, catching errors and panics, and thin its step rows.
+fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> TrialResult {
+    let steps = spec.config.steps;
+    let theta = spec.config.threshold;
+    let mut rows: Vec<StepReport> = Vec::new();
+    let mut series: Vec<f64> = Vec::with_capacity(steps as usize);
+    let started = std::time::Instant::now();
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        runner.run(spec, &mut |rep: &StepReport| {
+            series.push(rep.task_pct);
+            if rep.step.is_multiple_of(stride) || rep.step == steps {
+                rows.push(rep.clone());
+            }
+        })
+    }));
+    let wall = started.elapsed().as_secs_f64();
+    let error = match r {
+        Ok(Ok(summary)) => {
+            if series.len() as u64 != steps {
+                Some(format!(
+                    "the runner reported {} of {steps} steps",
+                    series.len()
+                ))
+            } else {
+                return TrialResult {
+                    outcome: metrics::outcome(&series, theta),
+                    summary: Some(summary),
+                    rows,
+                    error: None,
+                    wall_seconds: wall,
+                };
+            }
+        }
+        Ok(Err(e)) => Some(e.to_string()),
+        Err(panic) => Some(format!(
+            "panic: {}",
+            panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown".into())
+        )),
+    };
+    TrialResult {
+        outcome: metrics::outcome(&series, theta),
+        summary: None,
+        rows: Vec::new(),
+        error,
+        wall_seconds: wall,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SMALL: &str = r#"
+        tasks = ["foraging", "nest"]
+        seeds = 2
+        x = "obstacles"
+        [base]
+        steps = 50
+        [base.world]
+        agents = 5
+        [[grid]]
+        obstacles = [1, 2]
+        obstacles_at = [10, 20]
+        [[grid]]
+        obstacles = 1
+        obstacles_at = 10
+    "#;
+
+    #[test]
+    fn grid_expands_to_the_union_of_products() {
+        let c = Campaign::from_toml(SMALL, "small").unwrap();
+        assert_eq!(c.name, "small");
+        let labels: Vec<_> = c.conditions.iter().map(|c| c.label()).collect();
+        assert_eq!(
+            labels,
+            [
+                "obstacles=1 obstacles_at=10",
+                "obstacles=1 obstacles_at=20",
+                "obstacles=2 obstacles_at=10",
+                "obstacles=2 obstacles_at=20"
+            ]
+        );
+        let plan = c.plan();
+        assert_eq!(plan.len(), 4 * 2 * 2);
+        assert_eq!(c.spec(&plan[3]).config.seed, 2);
+        assert_eq!(c.spec(&plan[3]).config.world.task, Task::Nest);
+        assert_eq!(c.x_of(2), (2.0, "2".into()));
+    }
+
+    fn err(text: &str) -> String {
+        match Campaign::from_toml(text, "t") {
+            Ok(_) => panic!("accepted:\n{text}"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn bad_campaigns_name_the_key() {
+        let head = "tasks = [\"foraging\"]\nseeds = 1\n";
+        assert!(err(&format!("{head}bogus = 1\n[[grid]]\nip = [0.9]\n")).contains("bogus"));
+        assert!(err(&format!("{head}[base]\nbogus = 1\n[[grid]]\nip = [0.9]\n")).contains("bogus"));
+        assert!(err(&format!("{head}[[grid]]\nipp = [0.9]\n")).contains("grid[0].ipp"));
+        assert!(err(&format!("{head}[[grid]]\nip = []\n")).contains("grid[0].ip: is an empty list"));
+        assert!(err(&format!("{head}[[grid]]\nip = [0.5, 1.5]\n")).contains("grid[0].ip[1]"));
+        assert!(err(head).contains("grid: no conditions"));
+        assert!(err("tasks = []\nseeds = 1\n[[grid]]\nip = 0.9\n").contains("tasks"));
+        assert!(err("tasks = [\"foraging\"]\nseeds = 0\n[[grid]]\nip = 0.9\n").contains("seeds"));
+        assert!(err("seeds = 1\n[[grid]]\nip = 0.9\n").contains("tasks"));
+        assert!(
+            err(&format!("{head}[[grid]]\nip = [0.8, 0.9]\nst = [5, 7]\n"))
+                .contains("x: several knobs vary")
+        );
+        assert!(err(&format!("{head}x = \"size\"\n[[grid]]\nip = [0.9]\n"))
+            .contains("x: 'size' is not set"));
+        assert!(err(&format!("{head}[[grid]]\nobstacles = [2]\n"))
+            .contains("obstacles: needs `obstacles_at`"));
+        assert!(err(&format!(
+            "{head}[base]\nsteps = 100\n[[grid]]\nkill = 0.5\nkill_at = 100\n"
+        ))
+        .contains("kill_at"));
+        assert!(err(&format!("{head}[[grid]]\ngrid = [7]\n")).contains("grid"));
+        assert!(
+            err(&format!("{head}[[grid]]\ngrammar = \"no-such-grammar\"\n"))
+                .contains("no-such-grammar")
+        );
+    }
+
+    #[test]
+    fn shipped_campaign_files_are_valid() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../campaigns");
+        let mut n = 0;
+        for sub in [dir.clone(), dir.join("smoke")] {
+            for e in std::fs::read_dir(&sub).unwrap() {
+                let p = e.unwrap().path();
+                if p.extension().is_some_and(|x| x == "toml") {
+                    let c =
+                        Campaign::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+                    assert!(c.x.is_some(), "{}: no x knob", p.display());
+                    n += 1;
+                }
+            }
+        }
+        assert!(n >= 18, "only {n} campaign files");
+    }
+}

@@ -1,0 +1,202 @@
+//! The `geese campaign`, `geese report` and `geese export` subcommands (binary only):
+//! argument parsing and printing around the library's campaign, store and report.
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use geese_orchestrator::campaign::{Campaign, CampaignFile, InProcess, RunOptions, TrialRunner};
+use geese_orchestrator::metrics::{EfficiencyVariant, PowerVariant};
+use geese_orchestrator::report::{self, EfficiencyChoice, ReportOptions};
+use geese_orchestrator::store::Store;
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct CampaignArgs {
+    /// Campaign file (TOML; see campaigns/ and the README).
+    pub file: PathBuf,
+    /// Results database (default results/<campaign name>.sqlite). An existing database
+    /// of the same campaign is resumed: finished trials are not run again.
+    #[arg(long)]
+    pub db: Option<PathBuf>,
+    /// Trials run at once (default: one per core).
+    #[arg(long, short = 'j')]
+    pub jobs: Option<usize>,
+    /// Run trials that failed in an earlier invocation again.
+    #[arg(long)]
+    pub retry_failed: bool,
+    /// Override the file's number of seeds.
+    #[arg(long)]
+    pub seeds: Option<u32>,
+    /// Override the base number of steps.
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Override the base number of agents.
+    #[arg(long)]
+    pub agents: Option<u32>,
+    /// No progress bar.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum EfficiencyArg {
+    /// (T − t80)/T · 100 (the paper).
+    Paper,
+    /// The reference-code variant the campaign file names (code_efficiency).
+    Code,
+    /// Reference code, Sec. 5 ablation (t_min = 5200).
+    Sec5Ablation,
+    /// Reference code, Sec. 5 addition/distortion/shift (t_min = 2756, absolute).
+    Sec5,
+    /// Reference code, Sec. 7 (t_min = fastest trial of the condition).
+    Sec7,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum PowerArg {
+    /// Maximum success probability before T (the paper).
+    Paper,
+    /// Task % after the last step (the reference code).
+    Code,
+}
+
+#[derive(Args)]
+pub struct ReportArgs {
+    /// Results database written by `geese campaign`.
+    pub db: PathBuf,
+    /// Directory for the figures and metric CSVs (default: <db without extension>-report).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "paper")]
+    pub efficiency: EfficiencyArg,
+    #[arg(long, value_enum, default_value = "paper")]
+    pub power: PowerArg,
+    /// Use at most the first N trials per (task, x level), as the reference plots (40).
+    #[arg(long)]
+    pub cap: Option<usize>,
+    /// Tables only, no figures.
+    #[arg(long)]
+    pub no_plots: bool,
+}
+
+#[derive(Args)]
+pub struct ExportArgs {
+    /// Results database written by `geese campaign`.
+    pub db: PathBuf,
+    /// Directory for trials.csv, steps.csv, sessions.csv and manifest.json.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
+    let text = std::fs::read_to_string(&a.file)
+        .with_context(|| format!("cannot read campaign {}", a.file.display()))?;
+    let mut file: CampaignFile =
+        toml::from_str(&text).map_err(|e| anyhow::anyhow!("campaign {}: {e}", a.file.display()))?;
+    if let Some(v) = a.seeds {
+        file.seeds = v;
+    }
+    if let Some(v) = a.steps {
+        file.base.steps = v;
+    }
+    if let Some(v) = a.agents {
+        file.base.world.agents = v;
+    }
+    let stem = a
+        .file
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "campaign".into());
+    let campaign = Campaign::new(file, text, &stem)
+        .with_context(|| format!("campaign {}", a.file.display()))?;
+    let db =
+        a.db.clone()
+            .unwrap_or_else(|| PathBuf::from(format!("results/{}.sqlite", campaign.name)));
+    let mut store = Store::create(&db)?;
+    // The transport is chosen here: a distributed runner (trials over Zenoh) implements
+    // `TrialRunner` and is passed instead of `InProcess`.
+    let runner: &dyn TrialRunner = &InProcess;
+    let plan = campaign.plan();
+    let jobs = a.jobs.unwrap_or(0);
+    let threads = if jobs == 0 {
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1)
+    } else {
+        jobs
+    };
+    eprintln!(
+        "geese campaign {}: {} conditions × {} task(s) × {} seeds = {} trials, {} at a time ({}), results in {}",
+        campaign.name,
+        campaign.conditions.len(),
+        campaign.file.tasks.len(),
+        campaign.file.seeds,
+        plan.len(),
+        threads,
+        runner.transport(),
+        db.display()
+    );
+    let opts = RunOptions {
+        jobs,
+        retry_failed: a.retry_failed,
+        quiet: a.quiet,
+    };
+    let out = geese_orchestrator::campaign::run_campaign(&campaign, &mut store, runner, &opts)?;
+    println!(
+        "{} trials planned: {} already stored, {} run now ({} done, {} failed)",
+        out.planned,
+        out.skipped,
+        out.done + out.failed,
+        out.done,
+        out.failed
+    );
+    println!("wall time: {:.1} s", out.wall_seconds);
+    println!("results: {}  (geese report {})", db.display(), db.display());
+    Ok(())
+}
+
+pub fn report_cmd(a: ReportArgs) -> Result<()> {
+    let store = Store::open(&a.db)?;
+    let opts = ReportOptions {
+        efficiency: match a.efficiency {
+            EfficiencyArg::Paper => EfficiencyChoice::Paper,
+            EfficiencyArg::Code => EfficiencyChoice::Code,
+            EfficiencyArg::Sec5Ablation => {
+                EfficiencyChoice::Variant(EfficiencyVariant::Sec5Ablation)
+            }
+            EfficiencyArg::Sec5 => EfficiencyChoice::Variant(EfficiencyVariant::Sec5),
+            EfficiencyArg::Sec7 => EfficiencyChoice::Variant(EfficiencyVariant::Sec7),
+        },
+        power: match a.power {
+            PowerArg::Paper => PowerVariant::Paper,
+            PowerArg::Code => PowerVariant::Code,
+        },
+        cap: a.cap,
+    };
+    if a.cap == Some(0) {
+        anyhow::bail!("--cap: must be at least 1");
+    }
+    let r = report::build(&store, &opts)?;
+    r.print(&mut std::io::stdout().lock())?;
+    let out = a.out.clone().unwrap_or_else(|| {
+        let stem = a.db.file_stem().map(|s| s.to_string_lossy().into_owned());
+        a.db.with_file_name(format!(
+            "{}-report",
+            stem.unwrap_or_else(|| "results".into())
+        ))
+    });
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+    let mut files = r.write_csv(&out)?;
+    if !a.no_plots {
+        files.extend(r.plot(&store, &out)?);
+    }
+    println!("\nwrote {} files to {}", files.len(), out.display());
+    Ok(())
+}
+
+pub fn export_cmd(a: ExportArgs) -> Result<()> {
+    let store = Store::open(&a.db)?;
+    let files = store.export_csv(&a.out)?;
+    for f in &files {
+        println!("{}", f.display());
+    }
+    Ok(())
+}

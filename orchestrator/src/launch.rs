@@ -1,0 +1,886 @@
+//! The distributed mode of `geese run`: launch the world server and N agent processes
+//! on this machine, gather their per-step reports over Zenoh, and write the same
+//! `steps.csv` and manifest as an in-process run (plus `net.csv`).
+//!
+//! The launcher owns its children: they are spawned with `kill_on_drop`, killed by PID
+//! when the run ends or fails, and on Ctrl-C it asks the world to stop (the world's
+//! departure makes every agent process exit) before killing whatever is left. If the
+//! launcher itself dies, the world notices the orchestrator's liveliness token vanish
+//! and stops, and the agents follow the world: no orphans either way.
+use crate::config::RunSpec;
+use crate::output::{write_manifest, StepCsv};
+use crate::trial::TrialSummary;
+use geese_proto::keys::{self, Parsed};
+use geese_proto::net::{Deadlines, LossRates, NetReport, NetRunSpec, ReportMsg};
+use geese_proto::zenoh_bus::{self, CommonArgs, Role};
+use geese_proto::{decode, encode, Control};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncBufReadExt, BufReader};
+use tokio::process::{Child, Command};
+use tokio::sync::mpsc::unbounded_channel;
+use zenoh::sample::SampleKind;
+
+/// Why a distributed run failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LaunchError {
+    #[error("{0}")]
+    Bus(#[from] zenoh_bus::BusError),
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    #[error("{what}: {source}")]
+    Io {
+        what: String,
+        source: std::io::Error,
+    },
+    #[error("cannot find {bin} in {dir} (build the binaries: cargo build --release --bins)")]
+    MissingBinary { bin: String, dir: PathBuf },
+    #[error("the world server did not start: {0}")]
+    WorldStart(String),
+    #[error("the world server exited or disappeared before the run finished (after step {0})")]
+    WorldGone(u64),
+    #[error("no report for {0:?}; giving up")]
+    Stalled(Duration),
+    #[error("interrupted")]
+    Interrupted,
+    #[error("invalid: {0}")]
+    Invalid(String),
+    #[error("{0}")]
+    Codec(#[from] geese_proto::CodecError),
+}
+
+fn io(what: impl Into<String>) -> impl FnOnce(std::io::Error) -> LaunchError {
+    let what = what.into();
+    move |source| LaunchError::Io { what, source }
+}
+
+fn zerr(e: zenoh::Error) -> LaunchError {
+    LaunchError::Zenoh(e.to_string())
+}
+
+/// SIGKILL `count` agent processes right after step `at` is reported.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct KillPlan {
+    pub at: u64,
+    pub count: u32,
+}
+
+/// How to run a trial as separate processes.
+#[derive(Clone, Debug)]
+pub struct NetOptions {
+    /// Agent processes to launch on this machine (0: the agents come from elsewhere).
+    pub processes: u32,
+    /// Agents hosted per process (default: the agents split evenly over `processes`).
+    pub agents_per_process: Option<u32>,
+    pub loss: LossRates,
+    pub deadlines: Deadlines,
+    pub zenoh: CommonArgs,
+    /// Where `geese-world` and `geese-agent` are (default: next to this executable).
+    pub bin_dir: Option<PathBuf>,
+    /// Run name (default: unique per launch).
+    pub run: Option<String>,
+    /// Bare lock-step benchmark: no simulation, ticks out and empty replies back.
+    pub bare: bool,
+    /// `--subscribe` of the agent processes (`auto`, `cells`, `all`).
+    pub subscribe: Option<String>,
+    /// Failure injection: kill agent processes after given steps.
+    pub kill: Vec<KillPlan>,
+    /// Restart every killed agent process after these steps (same ids: they rejoin).
+    pub restart_at: Vec<u64>,
+    /// Give up if no report arrives for this long once the run has started.
+    pub stall: Duration,
+    /// Discard the children's stderr.
+    pub quiet_children: bool,
+}
+
+impl Default for NetOptions {
+    fn default() -> Self {
+        NetOptions {
+            processes: 1,
+            agents_per_process: None,
+            loss: LossRates::default(),
+            deadlines: Deadlines::default(),
+            zenoh: CommonArgs::default(),
+            bin_dir: None,
+            run: None,
+            bare: false,
+            subscribe: None,
+            kill: Vec::new(),
+            restart_at: Vec::new(),
+            stall: Duration::from_secs(60),
+            quiet_children: false,
+        }
+    }
+}
+
+/// One launched agent process.
+pub struct AgentProc {
+    pub first: u32,
+    pub count: u32,
+    pub child: Option<Child>,
+    pub pid: Option<u32>,
+    pub killed: bool,
+}
+
+/// The launched processes, as the observer of a run sees them.
+pub struct Swarm {
+    bin_dir: PathBuf,
+    run: String,
+    client: CommonArgs,
+    subscribe: Option<String>,
+    quiet: bool,
+    pub world_pid: Option<u32>,
+    world: Option<Child>,
+    pub agents: Vec<AgentProc>,
+    /// Every PID spawned, in order (world first).
+    spawned: Vec<u32>,
+}
+
+impl Swarm {
+    fn agent_command(&self, first: u32, count: u32) -> Command {
+        let mut c = Command::new(self.bin_dir.join("geese-agent"));
+        c.args(self.client.to_args()).args([
+            "--run",
+            &self.run,
+            "--id",
+            &first.to_string(),
+            "--agents",
+            &count.to_string(),
+        ]);
+        if let Some(s) = &self.subscribe {
+            c.args(["--subscribe", s]);
+        }
+        c.stdin(Stdio::null()).stdout(Stdio::null());
+        c.stderr(if self.quiet {
+            Stdio::null()
+        } else {
+            Stdio::inherit()
+        });
+        c.kill_on_drop(true);
+        c
+    }
+
+    fn spawn_agent(&mut self, i: usize) -> Result<(), LaunchError> {
+        let (first, count) = (self.agents[i].first, self.agents[i].count);
+        let child = self
+            .agent_command(first, count)
+            .spawn()
+            .map_err(io("cannot start geese-agent"))?;
+        self.spawned.extend(child.id());
+        let a = &mut self.agents[i];
+        a.pid = child.id();
+        a.child = Some(child);
+        a.killed = false;
+        Ok(())
+    }
+
+    /// SIGKILL agent process `i` (by its PID).
+    pub fn kill_agent(&mut self, i: usize) {
+        if let Some(a) = self.agents.get_mut(i) {
+            if let Some(c) = a.child.as_mut() {
+                let _ = c.start_kill();
+            }
+            a.killed = true;
+        }
+    }
+
+    /// Start agent process `i` again (same ids: its agents rejoin with fresh genes).
+    pub fn restart_agent(&mut self, i: usize) -> Result<(), LaunchError> {
+        if let Some(mut c) = self.agents.get_mut(i).and_then(|a| a.child.take()) {
+            let _ = c.start_kill();
+            let _ = c.try_wait();
+        }
+        self.spawn_agent(i)
+    }
+
+    /// The run name (the `<run>` of every key).
+    pub fn run_name(&self) -> &str {
+        &self.run
+    }
+
+    /// Zenoh arguments a client of this run connects with.
+    pub fn client_args(&self) -> &CommonArgs {
+        &self.client
+    }
+
+    /// PIDs of every process launched so far (world and agents, killed ones included).
+    pub fn all_pids(&self) -> Vec<u32> {
+        self.spawned.clone()
+    }
+
+    /// PIDs of the agent processes that are running.
+    pub fn agent_pids(&self) -> Vec<u32> {
+        self.agents
+            .iter()
+            .filter(|a| !a.killed)
+            .filter_map(|a| a.pid)
+            .collect()
+    }
+
+    /// Resident set size (KiB) of each running agent process, from /proc.
+    pub fn agent_rss_kib(&self) -> Vec<u64> {
+        self.agent_pids().into_iter().filter_map(rss_kib).collect()
+    }
+
+    pub fn world_rss_kib(&self) -> Option<u64> {
+        self.world_pid.and_then(rss_kib)
+    }
+
+    async fn shutdown(&mut self, grace: Duration) {
+        let deadline = Instant::now() + grace;
+        let mut all: Vec<&mut Child> = self
+            .agents
+            .iter_mut()
+            .filter_map(|a| a.child.as_mut())
+            .chain(self.world.as_mut())
+            .collect();
+        for c in all.iter_mut() {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if tokio::time::timeout(left, c.wait()).await.is_err() {
+                // Still there after the grace period: end it by PID.
+                let _ = c.start_kill();
+                let _ = tokio::time::timeout(Duration::from_secs(5), c.wait()).await;
+            }
+        }
+    }
+}
+
+/// VmRSS of a process in KiB (Linux).
+pub fn rss_kib(pid: u32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmRSS:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// What a distributed run amounts to.
+#[derive(Clone, Debug)]
+pub struct NetOutcome {
+    pub summary: TrialSummary,
+    /// All steps ran (false: stopped early).
+    pub completed: bool,
+    /// Steps reported.
+    pub reports: u64,
+    /// From the first report to the last (the run proper, start-up excluded).
+    pub run_seconds: f64,
+    /// From launch to the end, start-up and shutdown included.
+    pub wall_seconds: f64,
+    /// RSS of each agent process near the end of the run (KiB).
+    pub agent_rss_kib: Vec<u64>,
+    pub world_rss_kib: Option<u64>,
+    pub processes: u32,
+    pub agents_per_process: u32,
+}
+
+/// Where the binaries are: `bin_dir`, else `$GEESE_BIN_DIR`, else next to this
+/// executable (its parent when it is a test executable in `deps/`).
+pub fn find_bin_dir(bin_dir: Option<&Path>) -> Result<PathBuf, LaunchError> {
+    let dir = match (bin_dir, std::env::var_os("GEESE_BIN_DIR")) {
+        (Some(d), _) => d.to_path_buf(),
+        (None, Some(d)) => PathBuf::from(d),
+        (None, None) => {
+            let exe = std::env::current_exe().map_err(io("cannot locate this executable"))?;
+            let mut d = exe.parent().map(Path::to_path_buf).unwrap_or_default();
+            if d.file_name().is_some_and(|n| n == "deps") {
+                d.pop();
+            }
+            d
+        }
+    };
+    for bin in ["geese-world", "geese-agent"] {
+        if !dir.join(bin).exists() {
+            return Err(LaunchError::MissingBinary {
+                bin: bin.into(),
+                dir,
+            });
+        }
+    }
+    Ok(dir)
+}
+
+/// A run name unique to this launch.
+pub fn unique_run_name() -> String {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    format!("r{}-{:x}", std::process::id(), nanos & 0xffff_ffff)
+}
+
+/// The world server's specification of `spec` under `opts`.
+pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSpec, LaunchError> {
+    let c = &spec.config;
+    let json =
+        |v: Result<String, serde_json::Error>| v.map_err(|e| LaunchError::Invalid(e.to_string()));
+    for (name, p) in [
+        ("--intent-loss", opts.loss.intent),
+        ("--percept-loss", opts.loss.percept),
+    ] {
+        if !(0.0..=1.0).contains(&p) {
+            return Err(LaunchError::Invalid(format!(
+                "{name} {p} is outside [0, 1]"
+            )));
+        }
+    }
+    Ok(NetRunSpec {
+        run: run.into(),
+        seed: c.seed,
+        steps: c.steps,
+        agents: c.world.agents,
+        world_json: json(serde_json::to_string(&c.world))?,
+        learner_json: json(serde_json::to_string(&*spec.learner))?,
+        grammar_name: spec.grammar_name.clone(),
+        grammar_text: spec.grammar_text.to_string(),
+        regime: c.regime(),
+        perturbations: c
+            .perturbations
+            .iter()
+            .map(|p| (p.at, p.change.clone()))
+            .collect(),
+        loss: opts.loss,
+        deadlines: opts.deadlines,
+        bare: opts.bare,
+        expect_orchestrator: true,
+    })
+}
+
+/// Running summary, exactly as the in-process driver keeps it.
+pub fn record(s: &mut TrialSummary, threshold: f64, rep: &geese_proto::StepReport) {
+    s.steps = rep.step;
+    s.final_task_pct = rep.task_pct;
+    s.max_task_pct = s.max_task_pct.max(rep.task_pct);
+    if s.first_step_at_threshold.is_none() && rep.task_pct >= threshold {
+        s.first_step_at_threshold = Some(rep.step);
+    }
+    s.success |= rep.task_pct > threshold;
+    s.genetic_steps += rep.genetic_steps as u64;
+    s.stagnation_steps += rep.stagnation_steps as u64;
+}
+
+/// Run `spec` as separate processes; `observe` sees every step report (and may kill or
+/// restart agent processes through the [`Swarm`]).
+pub fn run_net(
+    spec: &RunSpec,
+    opts: &NetOptions,
+    observe: impl FnMut(&NetReport, &mut Swarm),
+) -> Result<NetOutcome, LaunchError> {
+    let rt = zenoh_bus::runtime(2).map_err(io("cannot start the async runtime"))?;
+    rt.block_on(run_net_async(spec, opts, observe))
+}
+
+enum Ev {
+    Report(Vec<u8>),
+    WorldGone,
+}
+
+async fn run_net_async(
+    spec: &RunSpec,
+    opts: &NetOptions,
+    mut observe: impl FnMut(&NetReport, &mut Swarm),
+) -> Result<NetOutcome, LaunchError> {
+    let launched = Instant::now();
+    let bin_dir = find_bin_dir(opts.bin_dir.as_deref())?;
+    let run = opts.run.clone().unwrap_or_else(unique_run_name);
+    if !keys::valid_run_name(&run) {
+        return Err(LaunchError::Invalid(format!("run name {run:?}")));
+    }
+    let n = spec.config.world.agents;
+    if n == 0 {
+        return Err(LaunchError::Invalid(
+            "a run needs at least one agent".into(),
+        ));
+    }
+    let per = match opts.agents_per_process {
+        Some(0) => {
+            return Err(LaunchError::Invalid(
+                "--agents-per-process must be at least 1".into(),
+            ))
+        }
+        Some(k) => k,
+        None => n.div_ceil(opts.processes.max(1)),
+    };
+    let nspec = net_spec(spec, opts, &run)?;
+    let spec_path = std::env::temp_dir().join(format!("geese-{run}.json"));
+    std::fs::write(
+        &spec_path,
+        serde_json::to_vec_pretty(&nspec).map_err(|e| LaunchError::Invalid(e.to_string()))?,
+    )
+    .map_err(io(format!("cannot write {}", spec_path.display())))?;
+    let _cleanup = RemoveOnDrop(spec_path.clone());
+
+    // The world first: it tells where to connect.
+    let mut world = Command::new(bin_dir.join("geese-world"));
+    world
+        .args(opts.zenoh.to_args())
+        .arg("--spec")
+        .arg(&spec_path)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(if opts.quiet_children {
+            Stdio::null()
+        } else {
+            Stdio::inherit()
+        })
+        .kill_on_drop(true);
+    let mut world = world.spawn().map_err(io("cannot start geese-world"))?;
+    let world_pid = world.id();
+    let stdout = world
+        .stdout
+        .take()
+        .ok_or_else(|| LaunchError::WorldStart("no stdout".into()))?;
+    let mut lines = BufReader::new(stdout).lines();
+    let mut locators = Vec::new();
+    let ready = tokio::time::timeout(Duration::from_secs(60), async {
+        while let Ok(Some(l)) = lines.next_line().await {
+            if let Some(loc) = l.strip_prefix("locator=") {
+                locators.push(loc.to_string());
+            } else if l.starts_with("ready") {
+                return true;
+            }
+        }
+        false
+    })
+    .await;
+    if !matches!(ready, Ok(true)) {
+        let _ = world.start_kill();
+        return Err(LaunchError::WorldStart(
+            "it did not announce its locator".into(),
+        ));
+    }
+    // Keep draining the world's stdout so it never blocks on a full pipe.
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+
+    // Every other process is a client of the world's router (or of --router).
+    let client = CommonArgs {
+        zenoh_config: opts.zenoh.zenoh_config.clone(),
+        mode: None,
+        connect: if opts.zenoh.router.is_some() {
+            opts.zenoh.connect.clone()
+        } else {
+            locators.clone()
+        },
+        listen: Vec::new(),
+        router: opts.zenoh.router.clone(),
+        cfg: opts.zenoh.cfg.clone(),
+    };
+    let session = zenoh_bus::open(&client, Role::Client).await?;
+    let (tx, mut rx) = unbounded_channel::<Ev>();
+    let t = tx.clone();
+    let _reports = session
+        .declare_subscriber(keys::report(&run))
+        .callback(move |s| {
+            let _ = t.send(Ev::Report(s.payload().to_bytes().into_owned()));
+        })
+        .await
+        .map_err(zerr)?;
+    let t = tx.clone();
+    let run2 = run.clone();
+    let _presence = session
+        .liveliness()
+        .declare_subscriber(keys::world_presence(&run))
+        .history(true)
+        .callback(move |s| {
+            if s.kind() == SampleKind::Delete
+                && keys::parse(&run2, s.key_expr().as_str()) == Parsed::WorldPresence
+            {
+                let _ = t.send(Ev::WorldGone);
+            }
+        })
+        .await
+        .map_err(zerr)?;
+    let token = session
+        .liveliness()
+        .declare_token(keys::orchestrator_presence(&run))
+        .await
+        .map_err(zerr)?;
+
+    let mut swarm = Swarm {
+        bin_dir,
+        run: run.clone(),
+        client,
+        subscribe: opts.subscribe.clone(),
+        quiet: opts.quiet_children,
+        world_pid,
+        world: Some(world),
+        agents: Vec::new(),
+        spawned: world_pid.into_iter().collect(),
+    };
+    if opts.processes > 0 {
+        let mut first = 0;
+        while first < n {
+            let count = per.min(n - first);
+            swarm.agents.push(AgentProc {
+                first,
+                count,
+                child: None,
+                pid: None,
+                killed: false,
+            });
+            first += count;
+        }
+        for i in 0..swarm.agents.len() {
+            swarm.spawn_agent(i)?;
+        }
+    }
+    let processes = swarm.agents.len() as u32;
+
+    let c = &spec.config;
+    let mut summary = TrialSummary {
+        seed: c.seed,
+        steps: 0,
+        final_task_pct: 0.0,
+        max_task_pct: 0.0,
+        first_step_at_threshold: None,
+        success: false,
+        genetic_steps: 0,
+        stagnation_steps: 0,
+        wall_seconds: 0.0,
+    };
+    let mut first_report: Option<Instant> = None;
+    let mut last_report = Instant::now();
+    let mut reports = 0u64;
+    let mut completed = false;
+    let mut agent_rss = Vec::new();
+    let mut world_rss = None;
+    let rss_at = (c.steps * 9 / 10).max(1);
+    let join_patience =
+        Duration::from_millis(opts.deadlines.join_ms as u64) + Duration::from_secs(10);
+    let mut outcome: Result<(), LaunchError> = Ok(());
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
+    // The world's liveliness token travels at a higher priority than its last reports:
+    // once it is gone, give the reports a moment to land before concluding.
+    let mut world_gone: Option<Instant> = None;
+    loop {
+        let patience = if first_report.is_some() {
+            opts.stall
+        } else {
+            join_patience
+        };
+        let mut left = (last_report + patience).saturating_duration_since(Instant::now());
+        if let Some(g) = world_gone {
+            left = left.min((g + Duration::from_secs(2)).saturating_duration_since(Instant::now()));
+        }
+        let ev = tokio::select! {
+            ev = rx.recv() => ev,
+            _ = tokio::time::sleep(left) => {
+                outcome = Err(if world_gone.is_some() {
+                    LaunchError::WorldGone(summary.steps)
+                } else {
+                    LaunchError::Stalled(patience)
+                });
+                break;
+            }
+            _ = &mut ctrl_c => {
+                outcome = Err(LaunchError::Interrupted);
+                break;
+            }
+        };
+        match ev {
+            Some(Ev::Report(bytes)) => match decode::<ReportMsg>(&bytes) {
+                Ok(ReportMsg::Step(r)) => {
+                    let now = Instant::now();
+                    first_report.get_or_insert(now);
+                    last_report = now;
+                    reports += 1;
+                    record(&mut summary, c.threshold, &r.report);
+                    if r.report.step == rss_at {
+                        agent_rss = swarm.agent_rss_kib();
+                        world_rss = swarm.world_rss_kib();
+                    }
+                    observe(&r, &mut swarm);
+                    let step = r.report.step;
+                    for k in opts.kill.iter().filter(|k| k.at == step) {
+                        let live: Vec<usize> = (0..swarm.agents.len())
+                            .filter(|&i| !swarm.agents[i].killed)
+                            .collect();
+                        for &i in live.iter().rev().take(k.count as usize) {
+                            swarm.kill_agent(i);
+                        }
+                    }
+                    if opts.restart_at.contains(&step) {
+                        for i in 0..swarm.agents.len() {
+                            if swarm.agents[i].killed {
+                                swarm.restart_agent(i)?;
+                            }
+                        }
+                    }
+                }
+                Ok(ReportMsg::Done {
+                    steps,
+                    completed: done,
+                }) => {
+                    completed = done && steps == c.steps;
+                    if !completed {
+                        outcome = Err(LaunchError::WorldGone(steps));
+                    }
+                    break;
+                }
+                Err(e) => tracing::warn!("undecodable report dropped: {e}"),
+            },
+            Some(Ev::WorldGone) => {
+                world_gone.get_or_insert_with(Instant::now);
+            }
+            None => {
+                outcome = Err(LaunchError::WorldGone(summary.steps));
+                break;
+            }
+        }
+    }
+    let run_seconds = match first_report {
+        Some(f) => last_report.duration_since(f).as_secs_f64(),
+        None => 0.0,
+    };
+    if outcome.is_err() {
+        // Ask the world to stop; its departure takes the agents with it.
+        if let Ok(b) = encode(&Control::Stop) {
+            let _ = zenoh_bus::put(&session, &keys::ctl(&run, "stop"), b).await;
+        }
+    }
+    let _ = token.undeclare().await;
+    swarm
+        .shutdown(Duration::from_secs(if outcome.is_ok() { 15 } else { 5 }))
+        .await;
+    let _ = session.close().await;
+    outcome?;
+    summary.wall_seconds = launched.elapsed().as_secs_f64();
+    Ok(NetOutcome {
+        wall_seconds: summary.wall_seconds,
+        summary,
+        completed,
+        reports,
+        run_seconds,
+        agent_rss_kib: agent_rss,
+        world_rss_kib: world_rss,
+        processes,
+        agents_per_process: per,
+    })
+}
+
+struct RemoveOnDrop(PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// Header of `net.csv`, the per-step network counters of a distributed run.
+pub const NET_CSV_HEADER: &str =
+    "step,processes,intents_lost,intents_late,percepts_lost,percepts_missing,genes_lost,genes_late,hostile,lt_mean,wait_us";
+
+/// `geese run --processes N`: run, write `steps.csv`, `net.csv` and the manifest into
+/// `out`, print the same lines as an in-process run.
+pub fn run_cli(
+    spec: &RunSpec,
+    opts: &NetOptions,
+    out: &Path,
+    quiet: bool,
+) -> anyhow::Result<NetOutcome> {
+    use anyhow::Context;
+    let csv_path = out.join("steps.csv");
+    let net_path = out.join("net.csv");
+    let mut csv = StepCsv::create(&csv_path)
+        .with_context(|| format!("cannot write {}", csv_path.display()))?;
+    let mut net = std::io::BufWriter::new(
+        std::fs::File::create(&net_path)
+            .with_context(|| format!("cannot write {}", net_path.display()))?,
+    );
+    writeln!(net, "{NET_CSV_HEADER}")?;
+    let steps = spec.config.steps;
+    let bar = if quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(steps)
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:40} {pos}/{len} steps  {msg}  [{elapsed} < {eta}]",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let mut io_err: Option<std::io::Error> = None;
+    let outcome = run_net(spec, opts, |r, _| {
+        let rep = &r.report;
+        let n = &r.net;
+        let res = csv.write(rep).and_then(|_| {
+            writeln!(
+                net,
+                "{},{},{},{},{},{},{},{},{},{},{}",
+                rep.step,
+                n.processes,
+                n.intents_lost,
+                n.intents_late,
+                n.percepts_lost,
+                n.percepts_missing,
+                rep.genes_lost,
+                n.genes_late,
+                n.hostile,
+                rep.lt_mean,
+                n.wait_us
+            )
+        });
+        if let Err(e) = res {
+            io_err.get_or_insert(e);
+        }
+        if rep.step % 50 == 0 {
+            bar.set_position(rep.step);
+            bar.set_message(format!(
+                "task {:.2} %  live {}",
+                rep.task_pct, rep.live_agents
+            ));
+        }
+    });
+    bar.finish_and_clear();
+    let outcome = outcome?;
+    if let Some(e) = io_err {
+        return Err(e).context("writing results");
+    }
+    csv.finish()?;
+    net.flush()?;
+    write_manifest(out, spec, "zenoh", &outcome.summary)?;
+    Ok(outcome)
+}
+
+/// The distributed-mode flags of `geese run`.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct NetArgs {
+    /// Run distributed: the world server and N agent processes on this machine, over
+    /// Zenoh (0: start only the world and wait for agent processes started elsewhere).
+    #[arg(long, value_name = "N")]
+    pub processes: Option<u32>,
+    /// Agents hosted per agent process [default: the agents split evenly over N].
+    #[arg(long, value_name = "K")]
+    pub agents_per_process: Option<u32>,
+    /// Receiver-side probability of losing each gene delivery (in-process too).
+    #[arg(long, value_name = "P")]
+    pub gene_loss: Option<f64>,
+    /// World-side probability of dropping each arrived intent (distributed only).
+    #[arg(long, value_name = "P")]
+    pub intent_loss: Option<f64>,
+    /// Agent-side probability of dropping each percept (distributed only).
+    #[arg(long, value_name = "P")]
+    pub percept_loss: Option<f64>,
+    /// World: longest wait for a step's intents [default 5000].
+    #[arg(long, value_name = "MS")]
+    pub intent_timeout_ms: Option<u32>,
+    /// Agents: longest wait for cell-mates' genes [default 3000].
+    #[arg(long, value_name = "MS")]
+    pub gene_timeout_ms: Option<u32>,
+    /// World: longest wait for every agent process to be present [default 120000].
+    #[arg(long, value_name = "MS")]
+    pub join_timeout_ms: Option<u32>,
+    /// SIGKILL COUNT agent processes after step STEP (repeatable).
+    #[arg(long, value_name = "STEP:COUNT")]
+    pub kill: Vec<String>,
+    /// Restart the killed agent processes after step STEP (repeatable).
+    #[arg(long, value_name = "STEP")]
+    pub restart_at: Vec<u64>,
+    /// Run name, the <run> of every key [default: unique per launch].
+    #[arg(long)]
+    pub run_name: Option<String>,
+    /// Directory of geese-world and geese-agent [default: next to geese].
+    #[arg(long)]
+    pub bin_dir: Option<PathBuf>,
+    /// How agent processes subscribe to cells: auto, cells or all.
+    #[arg(long)]
+    pub subscribe: Option<String>,
+    #[command(flatten)]
+    pub zenoh: CommonArgs,
+}
+
+impl NetArgs {
+    /// Apply the flags that change the run configuration itself.
+    pub fn apply(&self, mut c: crate::config::RunConfig) -> crate::config::RunConfig {
+        if let Some(p) = self.gene_loss {
+            c.gene_loss = p;
+        }
+        c
+    }
+
+    /// The launcher options, or `None` for an in-process run.
+    pub fn options(&self) -> anyhow::Result<Option<NetOptions>> {
+        let Some(processes) = self.processes else {
+            if self.intent_loss.is_some() || self.percept_loss.is_some() || !self.kill.is_empty() {
+                anyhow::bail!("--intent-loss, --percept-loss and --kill need --processes N (a distributed run)");
+            }
+            return Ok(None);
+        };
+        let mut kill = Vec::new();
+        for k in &self.kill {
+            let (at, count) = k
+                .split_once(':')
+                .and_then(|(a, c)| Some((a.parse().ok()?, c.parse().ok()?)))
+                .ok_or_else(|| anyhow::anyhow!("--kill {k:?}: expected STEP:COUNT"))?;
+            kill.push(KillPlan { at, count });
+        }
+        if let Some(s) = &self.subscribe {
+            if !["auto", "cells", "all"].contains(&s.as_str()) {
+                anyhow::bail!("--subscribe {s:?}: expected auto, cells or all");
+            }
+        }
+        let mut deadlines = Deadlines::default();
+        if let Some(v) = self.intent_timeout_ms {
+            deadlines.intent_ms = v;
+        }
+        if let Some(v) = self.gene_timeout_ms {
+            deadlines.gene_ms = v;
+        }
+        if let Some(v) = self.join_timeout_ms {
+            deadlines.join_ms = v;
+        }
+        Ok(Some(NetOptions {
+            processes,
+            agents_per_process: self.agents_per_process,
+            loss: LossRates {
+                intent: self.intent_loss.unwrap_or(0.0),
+                percept: self.percept_loss.unwrap_or(0.0),
+            },
+            deadlines,
+            zenoh: self.zenoh.clone(),
+            bin_dir: self.bin_dir.clone(),
+            run: self.run_name.clone(),
+            kill,
+            restart_at: self.restart_at.clone(),
+            subscribe: self.subscribe.clone(),
+            ..NetOptions::default()
+        }))
+    }
+}
+
+/// `geese router`: a plain Zenoh router (what `zenohd` would be), for `--router` set-ups
+/// and multi-host runs without installing anything.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct RouterArgs {
+    #[command(flatten)]
+    pub zenoh: CommonArgs,
+}
+
+pub fn router_cmd(args: RouterArgs) -> anyhow::Result<()> {
+    let mut common = args.zenoh;
+    if common.listen.is_empty() && common.zenoh_config.is_none() {
+        common.listen.push("tcp/127.0.0.1:7447".into());
+    }
+    if common.mode.is_none() && common.zenoh_config.is_none() {
+        common.mode = Some(zenoh_bus::Mode::Router);
+    }
+    let rt = zenoh_bus::runtime(1)?;
+    rt.block_on(async move {
+        let session = zenoh_bus::open(&common, Role::World).await?;
+        println!("geese router: listening on {}", common.listen.join(", "));
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            let mut term = signal(SignalKind::terminate())?;
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+        }
+        #[cfg(not(unix))]
+        tokio::signal::ctrl_c().await?;
+        let _ = session.close().await;
+        Ok(())
+    })
+}

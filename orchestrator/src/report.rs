@@ -1,0 +1,675 @@
+//! Turning a results database into the tables and figures researchers publish:
+//! success rate, power and efficiency per condition and per x level (pooled over the
+//! other knobs, as the paper pools ablation over insertion times), least-squares slopes
+//! across conditions, learning curves, Fig.-6/10-style scatters and Fig.-4-style boxes.
+use crate::metrics::{self, EfficiencyVariant, Outcome, PowerVariant, Stats};
+use crate::plot::{self, BoxGroup, Curve, PlotError, ScatterPanel};
+use crate::store::{csv_field, Store, StoreError, StoredTrial};
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Which efficiency to report.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum EfficiencyChoice {
+    /// The paper's definition.
+    #[default]
+    Paper,
+    /// The reference code's variant the campaign file names (`code_efficiency`).
+    Code,
+    Variant(EfficiencyVariant),
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct ReportOptions {
+    pub efficiency: EfficiencyChoice,
+    pub power: PowerVariant,
+    /// Use at most the first N trials of each (task, x level) — the reference plots
+    /// cap at 40 (REFERENCE §8.1).
+    pub cap: Option<usize>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+    #[error(
+        "--efficiency code: the campaign file names no code_efficiency; choose paper, sec5-ablation, sec5 or sec7"
+    )]
+    NoCodeEfficiency,
+    #[error("cannot write {path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+/// Metrics of one trial.
+#[derive(Clone, Debug)]
+pub struct Point {
+    pub task: String,
+    pub condition: String,
+    pub seed: u64,
+    pub x: f64,
+    pub x_label: String,
+    /// 1-based position of the x level among the task's levels.
+    pub x_pos: f64,
+    pub series: String,
+    pub power: f64,
+    pub efficiency: f64,
+    pub final_pct: f64,
+    pub success: bool,
+}
+
+/// One row of a metrics table.
+#[derive(Clone, Debug)]
+pub struct Row {
+    pub task: String,
+    /// Condition label, or the x level for pooled rows.
+    pub label: String,
+    pub trials: usize,
+    pub failed: usize,
+    pub success_rate: f64,
+    pub power: Option<Stats>,
+    pub efficiency: Option<Stats>,
+}
+
+/// A fitted line across conditions.
+#[derive(Clone, Debug)]
+pub struct Fit {
+    pub task: String,
+    pub metric: &'static str,
+    /// Slope per x position (levels at 1, 2, 3, …, as plotted).
+    pub slope_per_position: Option<f64>,
+    /// Slope per unit of the x knob.
+    pub slope_per_unit: Option<f64>,
+    pub intercept_per_position: Option<f64>,
+    pub n: usize,
+}
+
+pub struct Report {
+    pub name: String,
+    pub description: String,
+    pub x_name: String,
+    pub series_name: String,
+    pub efficiency: EfficiencyVariant,
+    pub power: PowerVariant,
+    pub threshold: f64,
+    pub trials: Vec<StoredTrial>,
+    pub points: Vec<Point>,
+    pub conditions: Vec<Row>,
+    pub groups: Vec<Row>,
+    pub fits: Vec<Fit>,
+}
+
+fn row(task: &str, label: String, pts: &[&Point], failed: usize) -> Row {
+    let succ: Vec<bool> = pts.iter().map(|p| p.success).collect();
+    let pw: Vec<f64> = pts.iter().map(|p| p.power).collect();
+    let ef: Vec<f64> = pts.iter().map(|p| p.efficiency).collect();
+    Row {
+        task: task.to_string(),
+        label,
+        trials: pts.len(),
+        failed,
+        success_rate: metrics::success_rate(&succ),
+        power: metrics::stats(&pw),
+        efficiency: metrics::stats(&ef),
+    }
+}
+
+/// Compute the report from a database.
+pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError> {
+    let meta = |k: &str| -> Result<String, ReportError> { Ok(store.meta(k)?.unwrap_or_default()) };
+    let efficiency = match opts.efficiency {
+        EfficiencyChoice::Paper => EfficiencyVariant::Paper,
+        EfficiencyChoice::Variant(v) => v,
+        EfficiencyChoice::Code => match meta("code_efficiency")?.as_str() {
+            "sec5-ablation" => EfficiencyVariant::Sec5Ablation,
+            "sec5" => EfficiencyVariant::Sec5,
+            "sec7" => EfficiencyVariant::Sec7,
+            _ => return Err(ReportError::NoCodeEfficiency),
+        },
+    };
+    let threshold = meta("threshold")?.parse().unwrap_or(80.0);
+    let trials = store.trials()?;
+    // Cap: first N finished trials per (task, x level), in condition/seed order.
+    let mut kept: Vec<&StoredTrial> = Vec::new();
+    let mut per_group: HashMap<(String, String), usize> = HashMap::new();
+    for t in trials.iter().filter(|t| t.outcome.is_some()) {
+        let n = per_group
+            .entry((t.task.clone(), t.x_label.clone()))
+            .or_default();
+        if opts.cap.is_none_or(|c| *n < c) {
+            *n += 1;
+            kept.push(t);
+        }
+    }
+    // Efficiency is computed per condition (Sec.-7 t_min is per condition).
+    let mut by_cond: BTreeMap<(String, i64), Vec<&StoredTrial>> = BTreeMap::new();
+    for t in &kept {
+        by_cond
+            .entry((t.task.clone(), t.condition_index))
+            .or_default()
+            .push(t);
+    }
+    // x positions per task: sorted distinct x values.
+    let mut xs: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    for t in &kept {
+        let v = xs.entry(t.task.clone()).or_default();
+        if !v.contains(&t.x) {
+            v.push(t.x);
+        }
+    }
+    for v in xs.values_mut() {
+        v.sort_by(|a, b| a.total_cmp(b));
+    }
+    let mut points = Vec::new();
+    for ((task, _), ts) in &by_cond {
+        let outcomes: Vec<Outcome> = ts.iter().filter_map(|t| t.outcome).collect();
+        let effs = metrics::efficiencies(&outcomes, efficiency);
+        for (t, (o, e)) in ts.iter().zip(outcomes.iter().zip(effs)) {
+            let pos = xs
+                .get(task)
+                .and_then(|v| v.iter().position(|x| *x == t.x))
+                .unwrap_or(0) as f64
+                + 1.0;
+            points.push(Point {
+                task: task.clone(),
+                condition: t.condition.clone(),
+                seed: t.seed,
+                x: t.x,
+                x_label: t.x_label.clone(),
+                x_pos: pos,
+                series: t.series.clone(),
+                power: metrics::power(o, opts.power),
+                efficiency: e,
+                final_pct: o.final_pct,
+                success: o.success,
+            });
+        }
+    }
+    points.sort_by(|a, b| {
+        a.task
+            .cmp(&b.task)
+            .then(a.x.total_cmp(&b.x))
+            .then(a.condition.cmp(&b.condition))
+            .then(a.seed.cmp(&b.seed))
+    });
+    // Per-condition rows (failed trials counted from all trials).
+    let mut conditions = Vec::new();
+    let mut cond_order: Vec<(String, i64, String)> = trials
+        .iter()
+        .map(|t| (t.task.clone(), t.condition_index, t.condition.clone()))
+        .collect();
+    cond_order.sort();
+    cond_order.dedup();
+    for (task, _, label) in &cond_order {
+        let pts: Vec<&Point> = points
+            .iter()
+            .filter(|p| &p.task == task && &p.condition == label)
+            .collect();
+        let failed = trials
+            .iter()
+            .filter(|t| &t.task == task && &t.condition == label && t.outcome.is_none())
+            .count();
+        conditions.push(row(task, label.clone(), &pts, failed));
+    }
+    // Pooled per x level, and fits.
+    let mut groups = Vec::new();
+    let mut fits = Vec::new();
+    for (task, levels) in &xs {
+        for x in levels {
+            let pts: Vec<&Point> = points
+                .iter()
+                .filter(|p| &p.task == task && p.x == *x)
+                .collect();
+            let label = pts.first().map(|p| p.x_label.clone()).unwrap_or_default();
+            let failed = trials
+                .iter()
+                .filter(|t| &t.task == task && t.x == *x && t.outcome.is_none())
+                .count();
+            groups.push(row(task, label, &pts, failed));
+        }
+        let pts: Vec<&Point> = points.iter().filter(|p| &p.task == task).collect();
+        let pos: Vec<f64> = pts.iter().map(|p| p.x_pos).collect();
+        let unit: Vec<f64> = pts.iter().map(|p| p.x).collect();
+        for (metric, ys) in [
+            ("power", pts.iter().map(|p| p.power).collect::<Vec<_>>()),
+            (
+                "efficiency",
+                pts.iter().map(|p| p.efficiency).collect::<Vec<_>>(),
+            ),
+        ] {
+            let by_pos = metrics::ols(&pos, &ys);
+            fits.push(Fit {
+                task: task.clone(),
+                metric,
+                slope_per_position: by_pos.map(|f| f.0),
+                intercept_per_position: by_pos.map(|f| f.1),
+                slope_per_unit: metrics::ols(&unit, &ys).map(|f| f.0),
+                n: ys.len(),
+            });
+        }
+    }
+    Ok(Report {
+        name: meta("name")?,
+        description: meta("description")?,
+        x_name: meta("x")?,
+        series_name: meta("series")?,
+        efficiency,
+        power: opts.power,
+        threshold,
+        trials,
+        points,
+        conditions,
+        groups,
+        fits,
+    })
+}
+
+fn fmt_opt(v: Option<f64>) -> String {
+    v.map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into())
+}
+
+fn fmt_stats(s: &Option<Stats>) -> [String; 3] {
+    match s {
+        Some(s) => [
+            format!("{:.2}", s.mean),
+            format!("{:.2}", s.median),
+            format!("{:.2}", s.iqr()),
+        ],
+        None => ["-".into(), "-".into(), "-".into()],
+    }
+}
+
+fn table(out: &mut dyn Write, first: &str, rows: &[Row]) -> std::io::Result<()> {
+    let w = rows
+        .iter()
+        .map(|r| r.label.len())
+        .max()
+        .unwrap_or(0)
+        .max(first.len());
+    writeln!(
+        out,
+        "{:<9} {:<w$} {:>6} {:>6} {:>8}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}",
+        "task",
+        first,
+        "trials",
+        "failed",
+        "success%",
+        "pow.mean",
+        "pow.med",
+        "pow.IQR",
+        "eff.mean",
+        "eff.med",
+        "eff.IQR"
+    )?;
+    for r in rows {
+        let [pm, pmed, piqr] = fmt_stats(&r.power);
+        let [em, emed, eiqr] = fmt_stats(&r.efficiency);
+        writeln!(
+            out,
+            "{:<9} {:<w$} {:>6} {:>6} {:>8.2}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}",
+            r.task, r.label, r.trials, r.failed, r.success_rate, pm, pmed, piqr, em, emed, eiqr
+        )?;
+    }
+    Ok(())
+}
+
+impl Report {
+    /// Print the metric tables.
+    pub fn print(&self, out: &mut dyn Write) -> std::io::Result<()> {
+        let done = self.trials.iter().filter(|t| t.outcome.is_some()).count();
+        writeln!(
+            out,
+            "campaign {}: {} trials stored ({} done, {} failed)",
+            self.name,
+            self.trials.len(),
+            done,
+            self.trials.len() - done
+        )?;
+        if !self.description.is_empty() {
+            writeln!(out, "{}", self.description.trim())?;
+        }
+        writeln!(
+            out,
+            "threshold {} %; power: {}; efficiency: {}",
+            self.threshold,
+            match self.power {
+                PowerVariant::Paper => "paper (max success probability, per trial 100/0)",
+                PowerVariant::Code => "code (final task %)",
+            },
+            match self.efficiency {
+                EfficiencyVariant::Paper => "paper ((T − t80)/T·100)",
+                EfficiencyVariant::Sec5Ablation => "code sec5-ablation (t_min 5200)",
+                EfficiencyVariant::Sec5 => "code sec5 (t_min 2756, |·|)",
+                EfficiencyVariant::Sec7 => "code sec7 (t_min per condition)",
+            }
+        )?;
+        writeln!(out, "\nPer condition:")?;
+        table(out, "condition", &self.conditions)?;
+        if !self.x_name.is_empty() {
+            writeln!(out, "\nPooled by {}:", self.x_name)?;
+            table(out, &self.x_name, &self.groups)?;
+            writeln!(
+                out,
+                "\nLeast-squares slope across conditions (per trial metric vs {}):",
+                self.x_name
+            )?;
+            writeln!(
+                out,
+                "{:<9} {:<10} {:>6} {:>14} {:>14}",
+                "task", "metric", "trials", "slope/position", "slope/unit"
+            )?;
+            for f in &self.fits {
+                writeln!(
+                    out,
+                    "{:<9} {:<10} {:>6} {:>14} {:>14}",
+                    f.task,
+                    f.metric,
+                    f.n,
+                    fmt_opt(f.slope_per_position),
+                    fmt_opt(f.slope_per_unit)
+                )?;
+            }
+        }
+        let failed: Vec<&StoredTrial> =
+            self.trials.iter().filter(|t| t.outcome.is_none()).collect();
+        if !failed.is_empty() {
+            writeln!(out, "\nFailed trials:")?;
+            for t in failed.iter().take(20) {
+                writeln!(
+                    out,
+                    "  {} task {} seed {}: {}",
+                    t.condition,
+                    t.task,
+                    t.seed,
+                    t.error.as_deref().unwrap_or("?")
+                )?;
+            }
+            if failed.len() > 20 {
+                writeln!(out, "  … and {} more", failed.len() - 20)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Write `conditions.csv`, `pooled.csv`, `fits.csv` and `points.csv` into `dir`.
+    pub fn write_csv(&self, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
+        let mut files = Vec::new();
+        let rows_csv = |name: &str, rows: &[Row]| -> Result<PathBuf, ReportError> {
+            let mut s = String::from(
+                "task,label,trials,failed,success_rate,power_mean,power_median,power_q1,power_q3,efficiency_mean,efficiency_median,efficiency_q1,efficiency_q3\n",
+            );
+            for r in rows {
+                let st = |v: &Option<Stats>| match v {
+                    Some(s) => format!("{},{},{},{}", s.mean, s.median, s.q1, s.q3),
+                    None => ",,,".into(),
+                };
+                s.push_str(&format!(
+                    "{},{},{},{},{},{},{}\n",
+                    r.task,
+                    csv_field(&r.label),
+                    r.trials,
+                    r.failed,
+                    r.success_rate,
+                    st(&r.power),
+                    st(&r.efficiency)
+                ));
+            }
+            write_file(&dir.join(name), &s)
+        };
+        files.push(rows_csv("conditions.csv", &self.conditions)?);
+        files.push(rows_csv("pooled.csv", &self.groups)?);
+        let mut s = String::from(
+            "task,metric,trials,slope_per_position,intercept_per_position,slope_per_unit\n",
+        );
+        let o = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
+        for f in &self.fits {
+            s.push_str(&format!(
+                "{},{},{},{},{},{}\n",
+                f.task,
+                f.metric,
+                f.n,
+                o(f.slope_per_position),
+                o(f.intercept_per_position),
+                o(f.slope_per_unit)
+            ));
+        }
+        files.push(write_file(&dir.join("fits.csv"), &s)?);
+        let mut s = String::from(
+            "task,condition,seed,x,x_position,series,success,power,efficiency,final_task_pct\n",
+        );
+        for p in &self.points {
+            s.push_str(&format!(
+                "{},{},{},{},{},{},{},{},{},{}\n",
+                p.task,
+                csv_field(&p.condition),
+                p.seed,
+                p.x,
+                p.x_pos,
+                csv_field(&p.series),
+                p.success,
+                p.power,
+                p.efficiency,
+                p.final_pct
+            ));
+        }
+        files.push(write_file(&dir.join("points.csv"), &s)?);
+        Ok(files)
+    }
+
+    /// Draw every figure into `dir` (PNG and SVG each); returns the files written.
+    pub fn plot(&self, store: &Store, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
+        std::fs::create_dir_all(dir).map_err(|source| ReportError::Io {
+            path: dir.into(),
+            source,
+        })?;
+        let mut files = Vec::new();
+        let x_name = if self.x_name.is_empty() {
+            "condition".to_string()
+        } else {
+            self.x_name.clone()
+        };
+        let tasks: Vec<String> = {
+            let mut t: Vec<String> = self.points.iter().map(|p| p.task.clone()).collect();
+            t.dedup();
+            t
+        };
+        // Learning curves: median and IQR of task % per step, per x level (and series).
+        let kept: HashMap<i64, &StoredTrial> = {
+            let keys: std::collections::HashSet<(String, String, u64)> = self
+                .points
+                .iter()
+                .map(|p| (p.task.clone(), p.condition.clone(), p.seed))
+                .collect();
+            self.trials
+                .iter()
+                .filter(|t| keys.contains(&(t.task.clone(), t.condition.clone(), t.seed)))
+                .map(|t| (t.id, t))
+                .collect()
+        };
+        type Key = (String, String, u64, String); // task, series, x order bits, x label
+        let mut acc: BTreeMap<Key, BTreeMap<u64, Vec<f64>>> = BTreeMap::new();
+        store.for_each_task_pct(|id, step, v| {
+            if let Some(t) = kept.get(&id) {
+                let key = (
+                    t.task.clone(),
+                    t.series.clone(),
+                    order_bits(t.x),
+                    t.x_label.clone(),
+                );
+                acc.entry(key).or_default().entry(step).or_default().push(v);
+            }
+        })?;
+        let mut panels: BTreeMap<(String, String), Vec<Curve>> = BTreeMap::new();
+        for ((task, series, _, x_label), by_step) in acc {
+            let mut c = Curve {
+                label: format!("{x_name} = {x_label}"),
+                steps: vec![0],
+                median: vec![0.0],
+                q1: vec![0.0],
+                q3: vec![0.0],
+            };
+            let every = (by_step.len() / 600).max(1);
+            let last = by_step.keys().next_back().copied();
+            for (i, (step, mut vals)) in by_step.into_iter().enumerate() {
+                if i % every != 0 && Some(step) != last {
+                    continue;
+                }
+                vals.sort_by(|a, b| a.total_cmp(b));
+                c.steps.push(step);
+                c.median.push(metrics::quantile(&vals, 0.5).unwrap_or(0.0));
+                c.q1.push(metrics::quantile(&vals, 0.25).unwrap_or(0.0));
+                c.q3.push(metrics::quantile(&vals, 0.75).unwrap_or(0.0));
+            }
+            panels.entry((task, series)).or_default().push(c);
+        }
+        for ((task, series), curves) in &panels {
+            let (stem, title) = if series.is_empty() {
+                (
+                    format!("curves-{task}"),
+                    format!(
+                        "{} ({task}): task % over time by {x_name} (median, IQR band)",
+                        self.name
+                    ),
+                )
+            } else {
+                (
+                    format!("curves-{task}-{}-{}", self.series_name, sanitize(series)),
+                    format!(
+                        "{} ({task}, {} = {series}): task % over time by {x_name} (median, IQR band)",
+                        self.name, self.series_name
+                    ),
+                )
+            };
+            files.extend(plot::learning_curves(
+                &dir.join(stem),
+                &title,
+                curves,
+                self.threshold,
+            )?);
+        }
+        for task in &tasks {
+            let pts: Vec<&Point> = self.points.iter().filter(|p| &p.task == task).collect();
+            let mut ticks: Vec<(f64, String)> =
+                pts.iter().map(|p| (p.x_pos, p.x_label.clone())).collect();
+            ticks.dedup();
+            let fit = |m: &str| self.fits.iter().find(|f| &f.task == task && f.metric == m);
+            let panel =
+                |m: &'static str, y: &dyn Fn(&Point) -> f64, y_label: String| ScatterPanel {
+                    title: match fit(m)
+                        .and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?)))
+                    {
+                        Some((a, b)) => format!("{m}: least squares {a:.3}·level + {b:.2}"),
+                        None => format!("{m}: no fitted line (one level)"),
+                    },
+                    y_label,
+                    points: pts.iter().map(|p| (p.x_pos, y(p))).collect(),
+                    fit: fit(m)
+                        .and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?))),
+                    ticks: ticks.clone(),
+                };
+            let panels = [
+                panel(
+                    "power",
+                    &|p| p.power,
+                    format!(
+                        "power ({})",
+                        if self.power == PowerVariant::Paper {
+                            "paper"
+                        } else {
+                            "code"
+                        }
+                    ),
+                ),
+                panel(
+                    "efficiency",
+                    &|p| p.efficiency,
+                    format!("efficiency ({})", self.efficiency.name()),
+                ),
+            ];
+            let title = format!("{} ({task}): power and efficiency vs {x_name}", self.name);
+            files.extend(plot::scatter(
+                &dir.join(format!("resilience-{task}")),
+                &title,
+                &panels,
+                &x_name,
+            )?);
+            // Box plots of the final task % per x level, grouped by series.
+            let mut series: Vec<String> = pts.iter().map(|p| p.series.clone()).collect();
+            series.sort_by(|a, b| match (a.parse::<f64>(), b.parse::<f64>()) {
+                (Ok(x), Ok(y)) => x.total_cmp(&y),
+                _ => a.cmp(b),
+            });
+            series.dedup();
+            let mut groups: Vec<BoxGroup> = Vec::new();
+            for (pos, label) in &ticks {
+                let boxes = series
+                    .iter()
+                    .map(|s| {
+                        pts.iter()
+                            .filter(|p| p.x_pos == *pos && &p.series == s)
+                            .map(|p| p.final_pct)
+                            .collect::<Vec<_>>()
+                    })
+                    .collect();
+                groups.push(BoxGroup {
+                    label: label.clone(),
+                    boxes,
+                });
+            }
+            let series_labels: Vec<String> = series
+                .iter()
+                .map(|s| {
+                    if s.is_empty() {
+                        String::new()
+                    } else {
+                        format!("{} = {s}", self.series_name)
+                    }
+                })
+                .collect();
+            let title = format!("{} ({task}): final task % by {x_name}", self.name);
+            files.extend(plot::boxes(
+                &dir.join(format!("final-{task}")),
+                &title,
+                &groups,
+                &series_labels,
+                &x_name,
+            )?);
+        }
+        Ok(files)
+    }
+}
+
+/// Sort key of an f64 that orders like the number (for BTreeMap keys).
+fn order_bits(x: f64) -> u64 {
+    let b = x.to_bits();
+    if b >> 63 == 1 {
+        !b
+    } else {
+        b | (1 << 63)
+    }
+}
+
+fn sanitize(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+fn write_file(path: &Path, text: &str) -> Result<PathBuf, ReportError> {
+    std::fs::write(path, text).map_err(|source| ReportError::Io {
+        path: path.into(),
+        source,
+    })?;
+    Ok(path.into())
+}

@@ -1,0 +1,247 @@
+//! Messages of the distributed runtime (DESIGN.md §2–4 over Zenoh).
+//!
+//! The simulation messages ([`Percept`](crate::Percept), [`GeneMsg`](crate::GeneMsg),
+//! [`Intent`](crate::Intent), [`StepReport`](crate::StepReport)) travel unchanged; this
+//! module adds what only a multi-process run needs:
+//!
+//! - [`NetRunSpec`]: everything the world server needs to run a trial (the launcher
+//!   writes it as JSON), and [`RunInfo`]: what an agent process learns from the world
+//!   when it joins (so agents on other hosts need no configuration file).
+//! - [`Tick`]: published by the world after the percepts of a step. It says which cell
+//!   each agent's centre is in (`NO_CELL` for dead agents), so every agent knows which
+//!   percept to read and which cell-mates will publish genes, without subscribing to
+//!   every cell. Percepts and the tick come from the same session in order, so when the
+//!   tick arrives the percepts an agent is subscribed to are already there.
+//! - [`GeneBatch`]: the genes one agent process offers in one cell for one step (plus the
+//!   ids of its agents there that lost their percept and so offer nothing, so that
+//!   mates need not wait for them), published on `cell/<cx>/<cy>/genes/<ids>` only when
+//!   agents of more than one process share the cell. The world (which is the router)
+//!   gathers the batches of a cell and republishes them as one batch on
+//!   `cell/<cx>/<cy>/genes` as soon as every process there has spoken: each process then
+//!   receives one message per shared cell instead of one per cell-mate (2N deliveries
+//!   for N processes in a cell rather than N²).
+//! - [`IntentBatch`]: the intents of one agent process for one step, with the ids of
+//!   agents that idle on purpose and the process's drop counters.
+//! - [`NetReport`]: the world's step report plus the network counters.
+//!
+//! Identity: an agent process publishes genes and intents on keys that carry the id
+//! range it speaks for ([`keys::AgentRange`](crate::keys::AgentRange)); a payload that
+//! names an agent outside that range is dropped and counted, never applied.
+use crate::geometry::Geometry;
+use crate::message::{AgentId, GeneMsg, Intent, ObjectInfo, Perturbation, Regime, StepReport};
+use crate::seed::mix64;
+use serde::{Deserialize, Serialize};
+
+/// Cell of a dead agent in a [`Tick`].
+pub const NO_CELL: u32 = u32::MAX;
+
+/// Injected message loss (DESIGN.md §2; genes are lost through
+/// [`Regime::gene_loss`], applied by the receiving learner).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct LossRates {
+    /// World side: probability that an arrived intent is dropped.
+    pub intent: f64,
+    /// Agent side: probability that an agent's percept is dropped (the agent idles).
+    pub percept: f64,
+}
+
+/// Deadlines that bound every wait of the distributed runtime.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Deadlines {
+    /// World: how long to wait for the intents of a step once its percepts are out.
+    pub intent_ms: u32,
+    /// Agent: how long to wait for cell-mates' genes.
+    pub gene_ms: u32,
+    /// Agent: how long to wait for a percept after the tick that announced it.
+    pub percept_ms: u32,
+    /// World: how long to wait for every expected process to be present.
+    pub join_ms: u32,
+}
+
+impl Default for Deadlines {
+    fn default() -> Self {
+        Deadlines {
+            intent_ms: 5_000,
+            gene_ms: 3_000,
+            percept_ms: 1_000,
+            join_ms: 120_000,
+        }
+    }
+}
+
+/// What the world server runs. Crate-specific configurations travel as JSON text
+/// (`world_json` is a `geese_world::WorldConfig`, `learner_json` a
+/// `geese_agent::LearnerConfig`) so that this contract crate does not depend on them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NetRunSpec {
+    /// Run name: the `<run>` of every key expression.
+    pub run: String,
+    pub seed: u64,
+    pub steps: u64,
+    pub agents: u32,
+    pub world_json: String,
+    pub learner_json: String,
+    pub grammar_name: String,
+    pub grammar_text: String,
+    /// The regime in force at step 1 (IP, lateral transfer, gene loss).
+    pub regime: Regime,
+    /// Scheduled perturbations, in the order they were configured.
+    pub perturbations: Vec<(u64, Perturbation)>,
+    pub loss: LossRates,
+    pub deadlines: Deadlines,
+    /// Bare lock-step benchmark: ticks out, empty replies back, no simulation.
+    pub bare: bool,
+    /// Wait for the orchestrator's presence before step 1 and stop when it goes away.
+    pub expect_orchestrator: bool,
+}
+
+/// What a joining agent process gets from the world (queryable `ctl/info`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunInfo {
+    pub spec: NetRunSpec,
+    pub geometry: Geometry,
+    pub hub: ObjectInfo,
+    /// The step the world will run next.
+    pub next_step: u64,
+    /// Centre cell of every agent's body now, dead or alive: where a joining (or
+    /// rejoining) process subscribes first.
+    pub cells: Vec<u32>,
+}
+
+/// Published by the world after the percepts of step `step`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tick {
+    pub step: u64,
+    /// Centre cell of every agent (`NO_CELL` if dead), indexed by agent id.
+    pub cells: Vec<u32>,
+}
+
+/// Genes one agent process offers in one cell for one step (or, from the world, the
+/// genes of every process in the cell).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GeneBatch {
+    pub step: u64,
+    pub cell: u32,
+    pub genes: Vec<GeneMsg>,
+    /// Agents of this process in this cell that offer no gene this step (percept lost).
+    pub absent: Vec<AgentId>,
+}
+
+/// Drop counters of one agent process since its previous intent batch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub struct HostCounters {
+    /// Percepts dropped by injected loss.
+    pub percepts_lost: u32,
+    /// Percepts that never arrived before their deadline.
+    pub percepts_missing: u32,
+    /// Cell-mates' genes that did not arrive before the gene deadline.
+    pub genes_late: u32,
+    /// Messages that did not decode, had the wrong version or claimed a foreign id.
+    pub hostile: u32,
+}
+
+/// The intents of one agent process for one step.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct IntentBatch {
+    pub step: u64,
+    pub intents: Vec<Intent>,
+    /// Agents that idle this step on purpose (no percept); not waited for.
+    pub idle: Vec<AgentId>,
+    pub counters: HostCounters,
+}
+
+/// Network counters of one step, summed over the world and the agent processes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub struct NetCounters {
+    /// Intents dropped by injected loss (world side).
+    pub intents_lost: u32,
+    /// Live agents whose intent had not arrived at the deadline.
+    pub intents_late: u32,
+    /// Percepts dropped by injected loss (agent side).
+    pub percepts_lost: u32,
+    /// Percepts that never arrived (agent side).
+    pub percepts_missing: u32,
+    /// Genes that missed the gene deadline (agent side).
+    pub genes_late: u32,
+    /// Messages dropped as hostile (undecodable, wrong version, foreign id), world and
+    /// agents together.
+    pub hostile: u32,
+    /// Agent processes present at the end of the step.
+    pub processes: u32,
+    /// Microseconds the world waited for intents this step.
+    pub wait_us: u32,
+}
+
+/// The world's report of one step in a distributed run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NetReport {
+    pub report: StepReport,
+    pub net: NetCounters,
+}
+
+/// Messages on the report plane.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ReportMsg {
+    Step(NetReport),
+    /// The world finished (`completed` false: stopped early) after `steps` steps.
+    Done {
+        steps: u64,
+        completed: bool,
+    },
+}
+
+/// Where the loss draws of one (stream, step, index) land: a uniform number in [0, 1).
+///
+/// Counter-based (a hash of the stream seed, step and index) rather than sequential, so
+/// the draw for a message does not depend on which other messages arrived, or in which
+/// order. `stream` is a `proto::seed::derive(run seed, owner, Purpose::Loss)` seed,
+/// salted per use with [`LOSS_SALT_PERCEPT`] or [`LOSS_SALT_INTENT`].
+pub fn loss_draw(stream: u64, step: u64, index: u64) -> f64 {
+    let h = mix64(mix64(stream ^ mix64(step)) ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+}
+
+/// Salt of the agent-side percept-loss stream (the learner owns the unsalted
+/// `Purpose::Loss` stream of each agent for gene loss).
+pub const LOSS_SALT_PERCEPT: u64 = 0x5045_5243_4550_5400;
+/// Salt of the world-side intent-loss stream.
+pub const LOSS_SALT_INTENT: u64 = 0x494e_5445_4e54_0000;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codec::{decode, encode};
+
+    #[test]
+    fn loss_draws_are_uniform_and_stable() {
+        let n = 20_000;
+        let below = (0..n)
+            .filter(|&i| loss_draw(7, i / 100, i % 100) < 0.25)
+            .count();
+        assert!((4_500..5_500).contains(&below), "{below}");
+        assert_eq!(loss_draw(1, 2, 3), loss_draw(1, 2, 3));
+        assert_ne!(loss_draw(1, 2, 3), loss_draw(1, 2, 4));
+        assert!((0..1000).all(|i| (0.0..1.0).contains(&loss_draw(i, i, i))));
+    }
+
+    #[test]
+    fn net_messages_round_trip() {
+        let t = Tick {
+            step: 4,
+            cells: vec![1, NO_CELL, 99],
+        };
+        assert_eq!(decode::<Tick>(&encode(&t).unwrap()).unwrap(), t);
+        let b = IntentBatch {
+            step: 2,
+            intents: vec![],
+            idle: vec![3],
+            counters: HostCounters::default(),
+        };
+        assert_eq!(decode::<IntentBatch>(&encode(&b).unwrap()).unwrap(), b);
+        let r = ReportMsg::Done {
+            steps: 5,
+            completed: true,
+        };
+        assert_eq!(decode::<ReportMsg>(&encode(&r).unwrap()).unwrap(), r);
+    }
+}

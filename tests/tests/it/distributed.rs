@@ -1,0 +1,557 @@
+//! The distributed runtime end to end (issue 3): a world server and agent processes over
+//! Zenoh on 127.0.0.1, compared with the in-process driver; message loss; agent
+//! processes killed and restarted; hostile messages; no orphan processes.
+//!
+//! Every process a test starts is ended by PID (the launcher kills its children by PID;
+//! the tests check afterwards that none is left). Every wait is bounded.
+use geese_orchestrator::config::{RunConfig, Scheduled};
+use geese_orchestrator::launch::{run_net, NetOptions};
+use geese_orchestrator::Trial;
+use geese_proto::net::{Deadlines, LossRates, NetReport};
+use geese_proto::{Perturbation, StepReport};
+use geese_world::Layout;
+use std::path::PathBuf;
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+/// Directory holding freshly built geese-world and geese-agent (and geese).
+fn bin_dir() -> PathBuf {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let w = geese_tests::bin_path("geese-world", "geese-world");
+        geese_tests::bin_path("geese-agent", "geese-agent");
+        w.parent().expect("bin dir").to_path_buf()
+    })
+    .clone()
+}
+
+fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunConfig {
+    let mut c = RunConfig {
+        steps,
+        seed,
+        ..Default::default()
+    };
+    c.world.agents = agents;
+    c.world.layout = layout;
+    c
+}
+
+fn in_process(cfg: &RunConfig) -> Vec<StepReport> {
+    let spec = cfg.clone().validate().expect("valid config");
+    let mut t = Trial::new(&spec).expect("world builds");
+    (0..cfg.steps).map(|_| t.step()).collect()
+}
+
+fn options(processes: u32, per: Option<u32>) -> NetOptions {
+    NetOptions {
+        processes,
+        agents_per_process: per,
+        bin_dir: Some(bin_dir()),
+        stall: Duration::from_secs(60),
+        deadlines: Deadlines {
+            join_ms: 60_000,
+            ..Deadlines::default()
+        },
+        ..NetOptions::default()
+    }
+}
+
+/// Run over Zenoh; returns the reports and every PID the launcher started.
+fn distributed(cfg: &RunConfig, opts: &NetOptions) -> (Vec<NetReport>, Vec<u32>) {
+    let spec = cfg.clone().validate().expect("valid config");
+    let mut reps = Vec::new();
+    let mut pids = Vec::new();
+    let out = run_net(&spec, opts, |r, swarm| {
+        reps.push(r.clone());
+        pids = swarm.all_pids();
+    })
+    .expect("distributed run");
+    assert!(out.completed, "the run stopped early");
+    (reps, pids)
+}
+
+fn alive(pid: u32) -> bool {
+    // A zombie has no status worth the name; /proc/<pid>/stat state Z counts as gone.
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(s) => !s
+            .rsplit(')')
+            .next()
+            .unwrap_or("")
+            .trim_start()
+            .starts_with('Z'),
+        Err(_) => false,
+    }
+}
+
+/// Every listed process has exited (give them a bounded moment).
+fn assert_all_gone(pids: &[u32]) {
+    let until = Instant::now() + Duration::from_secs(10);
+    while pids.iter().any(|&p| alive(p)) && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let left: Vec<u32> = pids.iter().copied().filter(|&p| alive(p)).collect();
+    assert!(left.is_empty(), "orphan processes: {left:?}");
+}
+
+fn step_reports(r: &[NetReport]) -> Vec<StepReport> {
+    r.iter().map(|n| n.report.clone()).collect()
+}
+
+#[test]
+fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
+    // Paper layout: every agent starts at the hub, so genes cross processes from step 1.
+    let cfg = config(20, 300, 5, Layout::Paper);
+    let expected = in_process(&cfg);
+    let (got, pids) = distributed(&cfg, &options(20, None));
+    assert_eq!(got.len(), 300);
+    assert!(
+        expected.iter().map(|r| r.lt_mean).sum::<f64>() > 0.0,
+        "no lateral transfer to compare"
+    );
+    for (a, b) in expected.iter().zip(step_reports(&got).iter()) {
+        assert_eq!(
+            a, b,
+            "step {} differs (digest of positions and genes)",
+            a.step
+        );
+    }
+    let late: u32 = got
+        .iter()
+        .map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing)
+        .sum();
+    assert_eq!(late, 0);
+    assert!(got
+        .iter()
+        .all(|r| r.net.processes == 20 && r.net.hostile == 0));
+    assert_all_gone(&pids);
+}
+
+#[test]
+fn hosted_agents_and_perturbations_equal_in_process() {
+    // Three processes hosting 8 agents each, small cells (agents change cell often),
+    // and perturbations that kill agents and switch lateral transfer off and on.
+    let mut cfg = config(24, 300, 9, Layout::Reference);
+    cfg.world.grid = 5;
+    cfg.perturbations = vec![
+        Scheduled {
+            at: 40,
+            change: Perturbation::AddObstacles {
+                count: 2,
+                radius: 6,
+            },
+        },
+        Scheduled {
+            at: 80,
+            change: Perturbation::KillFraction(0.25),
+        },
+        Scheduled {
+            at: 120,
+            change: Perturbation::SetIp(0.5),
+        },
+        Scheduled {
+            at: 160,
+            change: Perturbation::SetLateralTransfer(false),
+        },
+        Scheduled {
+            at: 200,
+            change: Perturbation::SetLateralTransfer(true),
+        },
+    ];
+    let expected = in_process(&cfg);
+    assert!(expected.last().is_some_and(|r| r.live_agents == 18));
+    let (got, pids) = distributed(&cfg, &options(3, Some(8)));
+    assert_eq!(expected, step_reports(&got));
+    // One process subscribing to every cell, the others to theirs: same trajectory.
+    let mut wide = options(3, Some(8));
+    wide.subscribe = Some("all".into());
+    let (got_wide, pids_wide) = distributed(&cfg, &wide);
+    assert_eq!(expected, step_reports(&got_wide));
+    assert_all_gone(&pids);
+    assert_all_gone(&pids_wide);
+}
+
+#[test]
+fn gene_loss_half_is_seeded_and_nothing_deadlocks_under_loss() {
+    let mut cfg = config(20, 300, 3, Layout::Paper);
+    cfg.gene_loss = 0.5;
+    // Gene loss is drawn by the receiving learner from its seeded stream: the same
+    // losses happen in-process and over Zenoh.
+    let expected = in_process(&cfg);
+    let (got, pids) = distributed(&cfg, &options(10, Some(2)));
+    assert_eq!(expected, step_reports(&got));
+    let lost: u32 = got.iter().map(|r| r.report.genes_lost).sum();
+    assert!(lost > 100, "gene loss 0.5 lost only {lost} deliveries");
+    assert!(
+        got.iter().any(|r| r.report.lt_mean > 0.0),
+        "no lateral transfer left at all"
+    );
+
+    // All three kinds of loss together: the run finishes without hitting a deadline and
+    // the report counts each kind.
+    let mut opts = options(10, Some(2));
+    opts.loss = LossRates {
+        intent: 0.2,
+        percept: 0.2,
+    };
+    opts.deadlines.intent_ms = 3_000;
+    opts.deadlines.gene_ms = 2_000;
+    let started = Instant::now();
+    let (lossy, pids2) = distributed(&cfg, &opts);
+    assert_eq!(lossy.len(), 300);
+    let sum = |f: fn(&NetReport) -> u32| lossy.iter().map(f).sum::<u32>();
+    assert!(
+        sum(|r| r.net.intents_lost) > 300,
+        "intents lost: {}",
+        sum(|r| r.net.intents_lost)
+    );
+    assert!(
+        sum(|r| r.net.percepts_lost) > 300,
+        "percepts lost: {}",
+        sum(|r| r.net.percepts_lost)
+    );
+    assert!(sum(|r| r.report.genes_lost) > 100);
+    assert!(sum(|r| r.report.missing_intents) >= sum(|r| r.net.intents_lost));
+    assert_eq!(
+        sum(|r| r.net.intents_late + r.net.genes_late),
+        0,
+        "a wait ran into its deadline"
+    );
+    assert!(started.elapsed() < Duration::from_secs(90));
+    assert_all_gone(&pids);
+    assert_all_gone(&pids2);
+}
+
+#[test]
+fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
+    // Long enough that a restarted process has time to start even on a loaded machine.
+    let cfg = config(20, 1500, 7, Layout::Reference);
+    let spec = cfg.clone().validate().expect("valid config");
+    let mut opts = options(20, None);
+    opts.deadlines.intent_ms = 3_000;
+    let mut reps: Vec<NetReport> = Vec::new();
+    let mut pids = Vec::new();
+    let mut killed = Vec::new();
+    let out = run_net(&spec, &opts, |r, swarm| {
+        reps.push(r.clone());
+        match r.report.step {
+            100 => {
+                // SIGKILL five agent processes mid-run.
+                for i in 15..20 {
+                    killed.extend(swarm.agents[i].pid);
+                    swarm.kill_agent(i);
+                }
+            }
+            600 => {
+                for i in 15..20 {
+                    swarm.restart_agent(i).expect("restart");
+                }
+            }
+            _ => {}
+        }
+        pids = swarm.all_pids();
+    })
+    .expect("distributed run");
+    assert!(out.completed);
+    assert_eq!(reps.len(), 1500);
+    assert!(reps[..100].iter().all(|r| r.report.live_agents == 20));
+    // The world notices the departures (liveliness) and keeps stepping with 15.
+    let first15 = reps
+        .iter()
+        .position(|r| r.report.live_agents == 15)
+        .expect("kills noticed");
+    assert!(first15 < 500, "kills noticed only at step {}", first15 + 1);
+    assert!(reps[first15..600]
+        .iter()
+        .all(|r| r.report.live_agents == 15 && r.net.processes == 15));
+    // The survivors kept learning and acting: not one step without them.
+    assert!(reps[first15..600]
+        .iter()
+        .all(|r| r.report.missing_intents == 0));
+    // The restarted processes rejoin (fresh genes) and the swarm is whole again.
+    assert!(
+        reps[600..].iter().any(|r| r.report.live_agents == 20),
+        "restarted agents never rejoined"
+    );
+    assert!(reps
+        .last()
+        .is_some_and(|r| r.report.live_agents == 20 && r.net.processes == 20));
+    // Nobody waited for a dead process beyond what the liveliness tokens told.
+    let late: u32 = reps.iter().map(|r| r.net.intents_late).sum();
+    assert!(late <= 5, "{late} intents hit the deadline");
+    for p in &killed {
+        assert!(!alive(*p), "killed process {p} still there");
+    }
+    assert_all_gone(&pids);
+}
+
+#[test]
+fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
+    use geese_proto::keys::{self, AgentRange};
+    use geese_proto::net::{GeneBatch, IntentBatch};
+    use geese_proto::zenoh_bus::{self, Role};
+    use geese_proto::{encode, AgentStats, Intent};
+
+    // Long enough for the attacker (started at step 5) to finish well before the end.
+    let cfg = config(12, 3000, 4, Layout::Paper);
+    let expected = in_process(&cfg);
+    let spec = cfg.clone().validate().expect("valid config");
+    let opts = options(4, Some(3));
+    let (tx, rx) =
+        std::sync::mpsc::channel::<(String, geese_proto::zenoh_bus::CommonArgs, (i32, i32))>();
+    let mut sent = false;
+    let mut reps: Vec<NetReport> = Vec::new();
+    let mut pids = Vec::new();
+    // A raw client session in a thread of its own, started once the run is under way.
+    let attacker = std::thread::spawn(move || -> usize {
+        let Ok((run, client, cell)) = rx.recv_timeout(Duration::from_secs(120)) else {
+            return 0;
+        };
+        let rt = zenoh_bus::runtime(1).expect("runtime");
+        rt.block_on(async move {
+            let session = tokio::time::timeout(
+                Duration::from_secs(20),
+                zenoh_bus::open(&client, Role::Client),
+            )
+            .await
+            .expect("open in time")
+            .expect("open");
+            let (cx, cy): (i32, i32) = cell;
+            let mut n = 0;
+            let forged_for = |agent: u32, step: u64| IntentBatch {
+                step,
+                intents: vec![Intent {
+                    step,
+                    agent,
+                    heading: 0.0,
+                    ops: vec![],
+                    stats: AgentStats::default(),
+                }],
+                idle: vec![],
+                counters: Default::default(),
+            };
+            let from0 = AgentRange::new(0, 3).expect("range");
+            let mut bad_version = encode(&forged_for(0, 1)).expect("encode");
+            bad_version[0] = 99;
+            let garbage = vec![
+                1u8, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff,
+            ];
+            for round in 0..20u64 {
+                let msgs: Vec<(String, Vec<u8>)> = vec![
+                    // Undecodable and wrong-version intents.
+                    (keys::agents_action(&run, from0), garbage.clone()),
+                    (keys::agents_action(&run, from0), bad_version.clone()),
+                    // An intent for agent 5 sent on agent process 0-2's key.
+                    (
+                        keys::agents_action(&run, from0),
+                        encode(&forged_for(5, round + 1)).expect("encode"),
+                    ),
+                    // An intent from the far future.
+                    (
+                        keys::agents_action(&run, from0),
+                        encode(&forged_for(1, 1_000_000)).expect("encode"),
+                    ),
+                    // A key that names no agent range.
+                    (format!("geese/{run}/agent/nobody/action"), garbage.clone()),
+                    // Gene batches: garbage, and genes of agents the key does not cover.
+                    (keys::cell_genes_from(&run, cx, cy, from0), garbage.clone()),
+                    (
+                        keys::cell_genes_from(&run, cx, cy, from0),
+                        encode(&GeneBatch {
+                            step: round + 1,
+                            cell: (cy * 10 + cx) as u32,
+                            genes: vec![geese_proto::GeneMsg {
+                                step: round + 1,
+                                from: 9,
+                                genome: vec![1, 2],
+                                fitness: 1.0,
+                            }],
+                            absent: vec![],
+                        })
+                        .expect("encode"),
+                    ),
+                    // Garbage where the agents listen: the cell's genes and percepts, ticks.
+                    (keys::cell_genes(&run, cx, cy), garbage.clone()),
+                    (keys::cell_percept(&run, cx, cy), garbage.clone()),
+                    (keys::tick(&run), garbage.clone()),
+                    (keys::ctl(&run, "schedule"), garbage.clone()),
+                ];
+                for (k, b) in msgs {
+                    if zenoh_bus::put(&session, &k, b).await.is_ok() {
+                        n += 1;
+                    }
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+            n
+        })
+    });
+    let hub_cell = {
+        let w = geese_world::World::new(cfg.world.clone(), cfg.seed).expect("world");
+        w.geometry().col_row(w.hub().pos)
+    };
+    let out = run_net(&spec, &opts, |r, swarm| {
+        reps.push(r.clone());
+        if !sent && r.report.step >= 5 {
+            sent = true;
+            let _ = tx.send((
+                swarm.run_name().to_string(),
+                swarm.client_args().clone(),
+                hub_cell,
+            ));
+        }
+        pids = swarm.all_pids();
+    })
+    .expect("distributed run");
+    let published = attacker.join().expect("attacker thread");
+    assert!(out.completed);
+    assert!(
+        published > 100,
+        "the attacker published only {published} messages"
+    );
+    let hostile: u32 = reps.iter().map(|r| r.net.hostile).sum();
+    assert!(hostile >= 100, "only {hostile} hostile messages counted");
+    // Dropped means dropped: the trajectory is the in-process one.
+    assert_eq!(expected, step_reports(&reps));
+    assert_all_gone(&pids);
+}
+
+#[test]
+fn geese_run_processes_writes_the_same_csv_and_leaves_no_orphans() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let geese = geese_tests::bin_path("geese-orchestrator", "geese");
+    let bins = bin_dir();
+    let run = |extra: &[&str], out: &str| {
+        let status = std::process::Command::new(&geese)
+            .args([
+                "run", "--agents", "12", "--steps", "150", "--seed", "2", "--layout", "paper",
+                "-q", "--out",
+            ])
+            .arg(dir.path().join(out))
+            .args(extra)
+            .env("GEESE_BIN_DIR", &bins)
+            .status()
+            .expect("run geese");
+        assert!(status.success());
+    };
+    run(&[], "inproc");
+    run(&["--processes", "4"], "net");
+    let a = std::fs::read_to_string(dir.path().join("inproc/steps.csv")).expect("csv");
+    let b = std::fs::read_to_string(dir.path().join("net/steps.csv")).expect("csv");
+    assert_eq!(a, b);
+    let m = std::fs::read_to_string(dir.path().join("net/manifest.json")).expect("manifest");
+    assert!(m.contains("\"transport\": \"zenoh\""));
+    assert!(
+        std::fs::read_to_string(dir.path().join("net/net.csv"))
+            .expect("net.csv")
+            .lines()
+            .count()
+            == 151
+    );
+}
+
+/// Children of `pid` (from /proc).
+fn children_of(pid: u32) -> Vec<u32> {
+    let mut v = Vec::new();
+    if let Ok(entries) = std::fs::read_dir("/proc") {
+        for e in entries.flatten() {
+            let Some(p) = e.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+                continue;
+            };
+            if let Ok(stat) = std::fs::read_to_string(format!("/proc/{p}/stat")) {
+                let ppid = stat
+                    .rsplit(')')
+                    .next()
+                    .and_then(|rest| rest.split_whitespace().nth(1)?.parse::<u32>().ok());
+                if ppid == Some(pid) {
+                    v.push(p);
+                }
+            }
+        }
+    }
+    v
+}
+
+/// Start `geese run --processes 3` for a long run and wait until its world and agents
+/// are up; returns the launcher and its children's PIDs.
+fn long_run(dir: &std::path::Path) -> (std::process::Child, Vec<u32>) {
+    let geese = geese_tests::bin_path("geese-orchestrator", "geese");
+    let child = std::process::Command::new(&geese)
+        .args([
+            "run",
+            "--agents",
+            "6",
+            "--steps",
+            "1000000",
+            "-q",
+            "--processes",
+            "3",
+            "--out",
+        ])
+        .arg(dir)
+        .env("GEESE_BIN_DIR", bin_dir())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("spawn geese");
+    let until = Instant::now() + Duration::from_secs(60);
+    let steps = dir.join("steps.csv");
+    loop {
+        let lines = std::fs::read_to_string(&steps)
+            .map(|s| s.lines().count())
+            .unwrap_or(0);
+        if lines > 1 || Instant::now() > until {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let kids = children_of(child.id());
+    assert_eq!(
+        kids.len(),
+        4,
+        "world and 3 agent processes expected, found {kids:?}"
+    );
+    (child, kids)
+}
+
+fn signal(pid: u32, sig: &str) {
+    let ok = std::process::Command::new("kill")
+        .args([sig, &pid.to_string()])
+        .status()
+        .expect("kill");
+    assert!(ok.success());
+}
+
+fn wait_exit(child: &mut std::process::Child, within: Duration) -> bool {
+    let until = Instant::now() + within;
+    while Instant::now() < until {
+        if let Ok(Some(_)) = child.try_wait() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    false
+}
+
+#[test]
+fn ctrl_c_or_sigkill_of_the_launcher_leaves_no_orphans() {
+    // Ctrl-C (SIGINT to the launcher only): it stops the world and kills the rest.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (mut child, kids) = long_run(dir.path());
+    signal(child.id(), "-INT");
+    assert!(
+        wait_exit(&mut child, Duration::from_secs(20)),
+        "launcher did not exit on SIGINT"
+    );
+    assert_all_gone(&kids);
+
+    // SIGKILL of the launcher: the world sees the orchestrator's token go and stops,
+    // the agents follow the world.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (mut child, kids) = long_run(dir.path());
+    signal(child.id(), "-KILL");
+    assert!(wait_exit(&mut child, Duration::from_secs(5)));
+    assert_all_gone(&kids);
+}

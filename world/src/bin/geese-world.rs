@@ -1,0 +1,883 @@
+//! `geese-world`: the world server of a distributed GEESE run (DESIGN.md §2–4).
+//!
+//! A thin async shell around the synchronous [`World`]: it publishes the percepts of a
+//! step on their cell topics followed by a [`Tick`], gathers the [`IntentBatch`]es of
+//! the agent processes until every live agent has answered (or the intent deadline
+//! passes), resolves the step exactly as the in-process driver does, and publishes the
+//! report. Presence is by liveliness tokens: the run starts when every agent id is
+//! covered by a present agent process (and the orchestrator is present, if expected);
+//! an agent process that disappears has its agents killed (`World::kill`), one that
+//! comes back has them revived (`World::revive`) at the next step.
+//!
+//! Normally started by `geese run --processes N`, which writes the `--spec` file.
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use geese_proto::keys::{self, AgentRange, Parsed};
+use geese_proto::net::{
+    loss_draw, GeneBatch, IntentBatch, NetCounters, NetReport, NetRunSpec, ReportMsg, RunInfo,
+    Tick, LOSS_SALT_INTENT, NO_CELL,
+};
+use geese_proto::seed::{derive, Owner, Purpose};
+use geese_proto::zenoh_bus::{self, CommonArgs};
+use geese_proto::{decode, encode, Control, Intent};
+use geese_world::{World, WorldConfig};
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
+use tokio::sync::Notify;
+use zenoh::qos::CongestionControl;
+use zenoh::sample::SampleKind;
+use zenoh::{Session, Wait};
+
+#[derive(Parser)]
+#[command(name = "geese-world", version, about = "GEESE world server (Zenoh)")]
+struct Args {
+    #[command(flatten)]
+    zenoh: CommonArgs,
+    /// Run specification (JSON), as written by `geese run --processes`.
+    #[arg(long)]
+    spec: PathBuf,
+    /// Tokio worker threads of the server loop.
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
+}
+
+enum Event {
+    Presence { alive: bool, key: String },
+    Ctl(Vec<u8>),
+    Signal,
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    let text = std::fs::read_to_string(&args.spec)
+        .with_context(|| format!("cannot read {}", args.spec.display()))?;
+    let spec: NetRunSpec = serde_json::from_str(&text)
+        .with_context(|| format!("{} is not a run specification", args.spec.display()))?;
+    if !keys::valid_run_name(&spec.run) {
+        bail!(
+            "run name {:?} must be one key chunk of letters, digits, '_', '-', '.'",
+            spec.run
+        );
+    }
+    let rt = zenoh_bus::runtime(args.threads)?;
+    rt.block_on(serve(args.zenoh, spec))
+}
+
+/// What the `ctl/info` queryable answers with.
+struct InfoState {
+    next_step: u64,
+    cells: Vec<u32>,
+}
+
+async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
+    let wcfg: WorldConfig =
+        serde_json::from_str(&spec.world_json).context("world configuration")?;
+    if wcfg.agents != spec.agents {
+        bail!(
+            "spec: {} agents but the world configuration has {}",
+            spec.agents,
+            wcfg.agents
+        );
+    }
+    let mut world = World::new(wcfg, spec.seed).map_err(|e| anyhow::anyhow!("world: {e}"))?;
+    // Exactly the in-process driver's set-up order (orchestrator/src/trial.rs).
+    world.set_regime(spec.regime);
+    for (at, change) in &spec.perturbations {
+        world.schedule(*at, change.clone());
+    }
+    let run = spec.run.clone();
+    let (session, locators) = zenoh_bus::open_world(&common).await?;
+    let (tx, mut rx) = unbounded_channel::<Event>();
+
+    let info = Arc::new(Mutex::new(InfoState {
+        next_step: world.step(),
+        cells: body_cells(&world),
+    }));
+    let fixed = (spec.clone(), world.geometry(), world.hub());
+    let info_q = info.clone();
+    let _queryable = session
+        .declare_queryable(keys::info(&run))
+        .callback(move |q| {
+            let (next_step, cells) = match info_q.lock() {
+                Ok(s) => (s.next_step, s.cells.clone()),
+                Err(_) => return,
+            };
+            let ri = RunInfo {
+                spec: fixed.0.clone(),
+                geometry: fixed.1,
+                hub: fixed.2,
+                next_step,
+                cells,
+            };
+            if let Ok(bytes) = encode(&ri) {
+                let _ = q.reply(q.key_expr().clone(), bytes).wait();
+            }
+        })
+        .await
+        .map_err(zerr)?;
+    let gather = Arc::new(Mutex::new(Gather::new(run.clone(), spec.agents as usize)));
+    let gathered = Arc::new(Notify::new());
+    let (g, done) = (gather.clone(), gathered.clone());
+    let _actions = session
+        .declare_subscriber(keys::all_actions(&run))
+        .callback(move |s| {
+            let bytes = s.payload().to_bytes();
+            let mut g = g.lock().unwrap_or_else(|e| e.into_inner());
+            if g.on_action(s.key_expr().as_str(), &bytes) {
+                done.notify_one();
+            }
+        })
+        .await
+        .map_err(zerr)?;
+    let genes = Arc::new(Mutex::new(GeneHub {
+        run: run.clone(),
+        geom: world.geometry(),
+        step: 0,
+        cells: HashMap::new(),
+        hostile: 0,
+    }));
+    let (h, s2) = (genes.clone(), session.clone());
+    let _genes = session
+        .declare_subscriber(keys::all_gene_batches(&run))
+        .callback(move |s| {
+            let bytes = s.payload().to_bytes();
+            let out = h
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .on_batch(s.key_expr().as_str(), &bytes);
+            if let Some((key, agg)) = out {
+                let _ = s2
+                    .put(key, agg)
+                    .congestion_control(CongestionControl::Block)
+                    .wait();
+            }
+        })
+        .await
+        .map_err(zerr)?;
+    let t = tx.clone();
+    let _ctl = session
+        .declare_subscriber(keys::all_ctl(&run))
+        .callback(move |s| {
+            let _ = t.send(Event::Ctl(s.payload().to_bytes().into_owned()));
+        })
+        .await
+        .map_err(zerr)?;
+    let t = tx.clone();
+    let _presence = session
+        .liveliness()
+        .declare_subscriber(keys::all_presence(&run))
+        .history(true)
+        .callback(move |s| {
+            let alive = s.kind() == SampleKind::Put;
+            let _ = t.send(Event::Presence {
+                alive,
+                key: s.key_expr().as_str().to_owned(),
+            });
+        })
+        .await
+        .map_err(zerr)?;
+    let token = session
+        .liveliness()
+        .declare_token(keys::world_presence(&run))
+        .await
+        .map_err(zerr)?;
+    spawn_signal_watch(tx.clone());
+
+    // Tell the launcher (or the user) where to connect.
+    {
+        let mut out = std::io::stdout().lock();
+        for l in &locators {
+            writeln!(out, "locator={l}")?;
+        }
+        writeln!(out, "ready run={run}")?;
+        out.flush()?;
+    }
+    eprintln!(
+        "geese-world: run {run} listening on {}",
+        locators.join(", ")
+    );
+
+    let mut server = Server::new(&session, spec, world, info, gather, gathered, genes);
+    let outcome = server.run(&mut rx).await;
+    // Whatever happened, say so and let everyone go.
+    let (steps, completed) = match &outcome {
+        Ok(c) => (server.steps_done, *c),
+        Err(_) => (server.steps_done, false),
+    };
+    let done = ReportMsg::Done { steps, completed };
+    if let Ok(b) = encode(&done) {
+        let _ = zenoh_bus::put(&session, &keys::report(&run), b).await;
+    }
+    if let Ok(b) = encode(&Control::Stop) {
+        let _ = zenoh_bus::put(&session, &keys::ctl(&run, "stop"), b).await;
+    }
+    drop(server);
+    let _ = token.undeclare().await;
+    // Give the last messages a moment to leave before the router goes away.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let _ = session.close().await;
+    outcome.map(|_| ())
+}
+
+fn zerr(e: zenoh::Error) -> anyhow::Error {
+    anyhow::anyhow!("zenoh: {e}")
+}
+
+fn spawn_signal_watch(tx: UnboundedSender<Event>) {
+    tokio::spawn(async move {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            let (Ok(mut term), Ok(mut int)) = (
+                signal(SignalKind::terminate()),
+                signal(SignalKind::interrupt()),
+            ) else {
+                return;
+            };
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = int.recv() => {}
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = tokio::signal::ctrl_c().await;
+        }
+        let _ = tx.send(Event::Signal);
+    });
+}
+
+/// Centre cell of every agent's body, dead or alive.
+fn body_cells(world: &World) -> Vec<u32> {
+    let g = world.geometry();
+    world.bodies().iter().map(|b| g.cell_of(b.pos)).collect()
+}
+
+/// Centre cell of every agent (`NO_CELL` when dead).
+fn cells_of(world: &World) -> Vec<u32> {
+    let g = world.geometry();
+    world
+        .bodies()
+        .iter()
+        .map(|b| if b.live { g.cell_of(b.pos) } else { NO_CELL })
+        .collect()
+}
+
+/// The intents of the step being gathered. Filled by the subscriber callback on Zenoh's
+/// receive thread, so the server loop wakes once per step (when the last expected
+/// intent is in), not once per message.
+struct Gather {
+    run: String,
+    n: usize,
+    /// The step whose intents are awaited (0: none).
+    step: u64,
+    expected: Vec<bool>,
+    answered: Vec<bool>,
+    intents: Vec<Option<Intent>>,
+    pending: usize,
+    counters: NetCounters,
+}
+
+impl Gather {
+    fn new(run: String, n: usize) -> Self {
+        Gather {
+            run,
+            n,
+            step: 0,
+            expected: vec![false; n],
+            answered: vec![false; n],
+            intents: vec![None; n],
+            pending: 0,
+            counters: NetCounters::default(),
+        }
+    }
+
+    fn begin(&mut self, step: u64, expected: impl Fn(usize) -> bool) {
+        self.step = step;
+        self.pending = 0;
+        self.counters = NetCounters::default();
+        for i in 0..self.n {
+            self.intents[i] = None;
+            self.answered[i] = false;
+            self.expected[i] = expected(i);
+            self.pending += self.expected[i] as usize;
+        }
+    }
+
+    /// Agent `id` is no longer awaited (its process left).
+    fn forget(&mut self, id: usize) {
+        if id < self.n && self.expected[id] {
+            self.expected[id] = false;
+            if !self.answered[id] {
+                self.pending -= 1;
+            }
+        }
+    }
+
+    fn answer(&mut self, id: usize) -> bool {
+        if self.answered[id] {
+            return false;
+        }
+        self.answered[id] = true;
+        if self.expected[id] {
+            self.pending -= 1;
+        }
+        true
+    }
+
+    /// File one intent batch; true when nothing is pending any more.
+    fn on_action(&mut self, key: &str, bytes: &[u8]) -> bool {
+        let Parsed::Action { from } = keys::parse(&self.run, key) else {
+            self.counters.hostile += 1;
+            return false;
+        };
+        let batch: IntentBatch = match decode(bytes) {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::debug!("dropped intent batch on {key}: {e}");
+                self.counters.hostile += 1;
+                return false;
+            }
+        };
+        let step = self.step;
+        if batch.step != step || step == 0 {
+            // A straggler of an earlier step (after its deadline), or nonsense.
+            if batch.step > step {
+                self.counters.hostile += 1;
+            }
+            return false;
+        }
+        let c = batch.counters;
+        self.counters.percepts_lost += c.percepts_lost;
+        self.counters.percepts_missing += c.percepts_missing;
+        self.counters.genes_late += c.genes_late;
+        self.counters.hostile += c.hostile;
+        for id in batch.idle {
+            if !from.contains(id) || id as usize >= self.n {
+                self.counters.hostile += 1;
+                continue;
+            }
+            self.answer(id as usize);
+        }
+        for intent in batch.intents {
+            let id = intent.agent;
+            if !from.contains(id) || id as usize >= self.n || intent.step != step {
+                // Claims an agent this process does not speak for.
+                self.counters.hostile += 1;
+                continue;
+            }
+            let i = id as usize;
+            if self.answer(i) && self.expected[i] {
+                self.intents[i] = Some(intent);
+            }
+        }
+        self.pending == 0
+    }
+}
+
+/// Per-cell gene aggregation (DESIGN.md §2 step 2). Agent processes publish their
+/// batch of a shared cell on `cell/<cx>/<cy>/genes/<ids>`; once every process with an
+/// agent centred in the cell has spoken, the cell's genes go out as one batch on
+/// `cell/<cx>/<cy>/genes`. Runs in the subscriber callback, like [`Gather`].
+struct GeneHub {
+    run: String,
+    geom: geese_proto::Geometry,
+    step: u64,
+    cells: HashMap<u32, CellAgg>,
+    hostile: u32,
+}
+
+struct CellAgg {
+    expect: Vec<AgentRange>,
+    got: Vec<(AgentRange, GeneBatch)>,
+    sent: bool,
+}
+
+impl GeneHub {
+    fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>) {
+        self.step = step;
+        self.hostile = 0;
+        self.cells = cells
+            .into_iter()
+            .map(|(c, expect)| {
+                (
+                    c,
+                    CellAgg {
+                        expect,
+                        got: Vec::new(),
+                        sent: false,
+                    },
+                )
+            })
+            .collect();
+    }
+
+    /// File one batch; returns the aggregate to publish (key, bytes) when the cell is complete.
+    fn on_batch(&mut self, key: &str, bytes: &[u8]) -> Option<(String, Vec<u8>)> {
+        let Parsed::Genes {
+            cx,
+            cy,
+            from: Some(from),
+        } = keys::parse(&self.run, key)
+        else {
+            self.hostile += 1;
+            return None;
+        };
+        let batch: GeneBatch = match decode(bytes) {
+            Ok(b) => b,
+            Err(_) => {
+                self.hostile += 1;
+                return None;
+            }
+        };
+        let cell_ok = cx < self.geom.cols()
+            && cy < self.geom.rows()
+            && batch.cell == (cy * self.geom.cols() + cx) as u32;
+        if !cell_ok
+            || !batch
+                .genes
+                .iter()
+                .all(|g| from.contains(g.from) && g.step == batch.step)
+            || !batch.absent.iter().all(|&a| from.contains(a))
+        {
+            // Wrong cell, or genes of agents the sender does not speak for.
+            self.hostile += 1;
+            return None;
+        }
+        if batch.step != self.step {
+            if batch.step > self.step {
+                self.hostile += 1;
+            }
+            return None;
+        }
+        let agg = self.cells.get_mut(&batch.cell)?;
+        if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _)| *r == from) {
+            return None;
+        }
+        agg.got.push((from, batch));
+        let cell = agg.got[0].1.cell;
+        self.complete(cell)
+    }
+
+    /// A process left: stop waiting for it.
+    fn forget(&mut self, gone: AgentRange) -> Vec<(String, Vec<u8>)> {
+        let cells: Vec<u32> = self.cells.keys().copied().collect();
+        let mut out = Vec::new();
+        for c in cells {
+            if let Some(agg) = self.cells.get_mut(&c) {
+                agg.expect.retain(|r| *r != gone);
+            }
+            out.extend(self.complete(c));
+        }
+        out
+    }
+
+    fn complete(&mut self, cell: u32) -> Option<(String, Vec<u8>)> {
+        let agg = self.cells.get_mut(&cell)?;
+        if agg.sent
+            || agg.got.is_empty()
+            || !agg
+                .expect
+                .iter()
+                .all(|r| agg.got.iter().any(|(g, _)| g == r))
+        {
+            return None;
+        }
+        agg.sent = true;
+        let mut all = GeneBatch {
+            step: self.step,
+            cell,
+            genes: Vec::new(),
+            absent: Vec::new(),
+        };
+        for (_, b) in agg.got.drain(..) {
+            all.genes.extend(b.genes);
+            all.absent.extend(b.absent);
+        }
+        all.genes.sort_by_key(|g| g.from);
+        all.absent.sort_unstable();
+        let (cx, cy) = self.geom.cell_col_row(cell);
+        let bytes = encode(&all).ok()?;
+        Some((keys::cell_genes(&self.run, cx, cy), bytes))
+    }
+}
+
+struct Server<'a> {
+    session: &'a Session,
+    spec: NetRunSpec,
+    world: World,
+    info: Arc<Mutex<InfoState>>,
+    gather: Arc<Mutex<Gather>>,
+    gathered: Arc<Notify>,
+    genes: Arc<Mutex<GeneHub>>,
+    run: String,
+    n: usize,
+    /// Present agent processes (tokens per id range: a restarted process may briefly
+    /// overlap the token of the one it replaces).
+    hosts: BTreeMap<AgentRange, u32>,
+    orchestrator: bool,
+    /// Agents whose process came (back) since the last step: revive them.
+    revive: Vec<u32>,
+    /// Perturbations received on the control plane, applied between steps.
+    scheduled: Vec<(u64, geese_proto::Perturbation)>,
+    stop: bool,
+    /// The live set last announced in a tick.
+    announced: Option<Vec<u32>>,
+    percept_keys: HashMap<u32, String>,
+    loss_stream: u64,
+    steps_done: u64,
+    counters: NetCounters,
+}
+
+impl<'a> Server<'a> {
+    fn new(
+        session: &'a Session,
+        spec: NetRunSpec,
+        world: World,
+        info: Arc<Mutex<InfoState>>,
+        gather: Arc<Mutex<Gather>>,
+        gathered: Arc<Notify>,
+        genes: Arc<Mutex<GeneHub>>,
+    ) -> Self {
+        let n = spec.agents as usize;
+        let loss_stream = derive(spec.seed, Owner::World, Purpose::Loss) ^ LOSS_SALT_INTENT;
+        Server {
+            session,
+            run: spec.run.clone(),
+            spec,
+            world,
+            info,
+            gather,
+            gathered,
+            genes,
+            n,
+            hosts: BTreeMap::new(),
+            orchestrator: false,
+            revive: Vec::new(),
+            scheduled: Vec::new(),
+            stop: false,
+            announced: None,
+            percept_keys: HashMap::new(),
+            loss_stream,
+            steps_done: 0,
+            counters: NetCounters::default(),
+        }
+    }
+
+    fn covered(&self) -> bool {
+        let mut c = vec![false; self.n];
+        for r in self.hosts.keys() {
+            for id in r.ids() {
+                if let Some(x) = c.get_mut(id as usize) {
+                    *x = true;
+                }
+            }
+        }
+        c.iter().all(|&x| x)
+    }
+
+    fn ready(&self) -> bool {
+        self.covered() && (self.orchestrator || !self.spec.expect_orchestrator)
+    }
+
+    fn gather(&self) -> std::sync::MutexGuard<'_, Gather> {
+        // A poisoned lock only means a callback panicked; the data is still usable.
+        self.gather.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Returns whether the run completed all its steps.
+    async fn run(&mut self, rx: &mut UnboundedReceiver<Event>) -> Result<bool> {
+        // Join: wait for every expected process.
+        let join_deadline =
+            Instant::now() + Duration::from_millis(self.spec.deadlines.join_ms as u64);
+        while !self.ready() {
+            let left = join_deadline.saturating_duration_since(Instant::now());
+            match tokio::time::timeout(left, rx.recv()).await {
+                Ok(Some(ev)) => self.handle(ev, 0),
+                Ok(None) => bail!("event channel closed"),
+                Err(_) => bail!(
+                    "join deadline ({} ms): agent processes cover {} of {} agents{}",
+                    self.spec.deadlines.join_ms,
+                    self.hosts.keys().map(|r| r.len()).sum::<u32>(),
+                    self.n,
+                    if self.spec.expect_orchestrator && !self.orchestrator {
+                        ", orchestrator absent"
+                    } else {
+                        ""
+                    }
+                ),
+            }
+            if self.stop {
+                return Ok(false);
+            }
+        }
+        self.revive.clear();
+        eprintln!(
+            "geese-world: {} agent processes present, starting {} steps",
+            self.hosts.len(),
+            self.spec.steps
+        );
+        while self.world.step() <= self.spec.steps {
+            self.step(rx).await?;
+            if self.stop {
+                return Ok(false);
+            }
+        }
+        Ok(true)
+    }
+
+    async fn step(&mut self, rx: &mut UnboundedReceiver<Event>) -> Result<()> {
+        let step = self.world.step();
+        // Between steps: revivals and control-plane perturbations.
+        for id in std::mem::take(&mut self.revive) {
+            if !self.spec.bare
+                && self
+                    .world
+                    .bodies()
+                    .get(id as usize)
+                    .is_some_and(|b| !b.live)
+            {
+                self.world.revive(id);
+            }
+        }
+        for (at, change) in std::mem::take(&mut self.scheduled) {
+            self.world.schedule(at, change);
+        }
+        self.counters = NetCounters::default();
+        if let Ok(mut s) = self.info.lock() {
+            s.next_step = step;
+            s.cells = if self.spec.bare {
+                Vec::new()
+            } else {
+                body_cells(&self.world)
+            };
+        }
+        // Open the gathering before anything goes out: fast answers must find it open.
+        {
+            let bare = self.spec.bare;
+            let hosts: Vec<AgentRange> = self.hosts.keys().copied().collect();
+            let bodies = self.world.bodies();
+            let expected = |i: usize| {
+                if bare {
+                    hosts.iter().any(|r| r.contains(i as u32))
+                } else {
+                    bodies[i].live
+                }
+            };
+            let mut g = self.gather.lock().unwrap_or_else(|e| e.into_inner());
+            g.begin(step, expected);
+        }
+        if !self.spec.bare {
+            // Cells whose centred live agents belong to more than one process: their genes
+            // go through the hub (lateral transfer on only).
+            let mut shared: HashMap<u32, Vec<AgentRange>> = HashMap::new();
+            if self.world.regime().lateral_transfer {
+                let g = self.world.geometry();
+                for b in self.world.bodies().iter().filter(|b| b.live) {
+                    if let Some(r) = self.hosts.keys().find(|r| r.contains(b.id)) {
+                        let v = shared.entry(g.cell_of(b.pos)).or_default();
+                        if !v.contains(r) {
+                            v.push(*r);
+                        }
+                    }
+                }
+                shared.retain(|_, v| v.len() > 1);
+            }
+            self.genes
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .begin(step, shared);
+        }
+        // 1. The tick (bare: every step; otherwise when the live set changed), then the
+        //    percepts of every occupied cell.
+        if self.spec.bare {
+            zenoh_bus::put(
+                self.session,
+                &keys::tick(&self.run),
+                encode(&Tick {
+                    step,
+                    cells: Vec::new(),
+                })?,
+            )
+            .await?;
+        } else {
+            let cells = cells_of(&self.world);
+            let live: Vec<u32> = cells
+                .iter()
+                .map(|&c| if c == NO_CELL { NO_CELL } else { 0 })
+                .collect();
+            if self.announced.as_ref() != Some(&live) {
+                zenoh_bus::put(
+                    self.session,
+                    &keys::tick(&self.run),
+                    encode(&Tick { step, cells })?,
+                )
+                .await?;
+                self.announced = Some(live);
+            }
+            for p in self.world.percepts() {
+                let ke = self.percept_key(p.cell);
+                let bytes = encode(&p)?;
+                self.session
+                    .put(ke, bytes)
+                    .congestion_control(CongestionControl::Block)
+                    .await
+                    .map_err(zerr)?;
+            }
+        }
+        // 2–3 happen in the agent processes. 4. Gather intents.
+        let started = Instant::now();
+        let deadline = tokio::time::Instant::from_std(
+            started + Duration::from_millis(self.spec.deadlines.intent_ms as u64),
+        );
+        loop {
+            let pending = self.gather().pending;
+            if pending == 0 || self.stop {
+                break;
+            }
+            tokio::select! {
+                _ = self.gathered.notified() => {}
+                ev = rx.recv() => match ev {
+                    Some(ev) => self.handle(ev, step),
+                    None => bail!("event channel closed"),
+                },
+                _ = tokio::time::sleep_until(deadline) => {
+                    self.counters.intents_late = pending as u32;
+                    tracing::warn!("step {step}: {pending} intents missing at the deadline");
+                    break;
+                }
+            }
+        }
+        self.counters.wait_us = started.elapsed().as_micros().min(u32::MAX as u128) as u32;
+        if self.stop {
+            return Ok(());
+        }
+        let (mut intents, answered_live, gc) = {
+            let mut g = self.gather();
+            g.step = 0;
+            let answered_live = (0..self.n)
+                .filter(|&i| g.expected[i] && g.answered[i])
+                .count();
+            let intents = std::mem::replace(&mut g.intents, vec![None; self.n]);
+            (intents, answered_live, g.counters)
+        };
+        let hub_hostile = {
+            let mut h = self.genes.lock().unwrap_or_else(|e| e.into_inner());
+            h.step = 0;
+            std::mem::take(&mut h.hostile)
+        };
+        let c = &mut self.counters;
+        c.hostile += hub_hostile;
+        c.percepts_lost += gc.percepts_lost;
+        c.percepts_missing += gc.percepts_missing;
+        c.genes_late += gc.genes_late;
+        c.hostile += gc.hostile;
+        // Injected intent loss (world side), one counter-based draw per arrived intent.
+        let p = self.spec.loss.intent;
+        if p > 0.0 {
+            for (id, slot) in intents.iter_mut().enumerate() {
+                if slot.is_some() && loss_draw(self.loss_stream, step, id as u64) < p {
+                    *slot = None;
+                    self.counters.intents_lost += 1;
+                }
+            }
+        }
+        let mut report = self.world.resolve(&intents);
+        if self.spec.bare {
+            // No world to speak of: live = present, missing = not answered.
+            let live = (0..self.n)
+                .filter(|&i| self.hosts.keys().any(|r| r.contains(i as u32)))
+                .count();
+            report.live_agents = live as u32;
+            report.missing_intents = (live - answered_live.min(live)) as u32;
+        }
+        self.counters.processes = self.hosts.len() as u32;
+        let msg = ReportMsg::Step(NetReport {
+            report,
+            net: self.counters,
+        });
+        zenoh_bus::put(self.session, &keys::report(&self.run), encode(&msg)?).await?;
+        self.steps_done = step;
+        Ok(())
+    }
+
+    /// The percept key of a cell (plain key expressions: a key declared by this session
+    /// would not be known to clients that connect later, e.g. a restarted agent).
+    fn percept_key(&mut self, cell: u32) -> String {
+        let (cx, cy) = self.world.geometry().cell_col_row(cell);
+        let run = &self.run;
+        self.percept_keys
+            .entry(cell)
+            .or_insert_with(|| keys::cell_percept(run, cx, cy))
+            .clone()
+    }
+
+    fn handle(&mut self, ev: Event, step: u64) {
+        match ev {
+            Event::Presence { alive, key } => match keys::parse(&self.run, &key) {
+                Parsed::AgentsPresence { agents } => {
+                    if alive {
+                        *self.hosts.entry(agents).or_insert(0) += 1;
+                        self.revive
+                            .extend(agents.ids().filter(|&id| (id as usize) < self.n));
+                    } else {
+                        if let Some(c) = self.hosts.get_mut(&agents) {
+                            *c -= 1;
+                            if *c == 0 {
+                                self.hosts.remove(&agents);
+                            }
+                        }
+                        let ready = self
+                            .genes
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .forget(agents);
+                        for (key, bytes) in ready {
+                            let _ = self
+                                .session
+                                .put(key, bytes)
+                                .congestion_control(CongestionControl::Block)
+                                .wait();
+                        }
+                        // Its agents stop here: bodies idle, carried items dropped.
+                        for id in agents.ids().filter(|&id| (id as usize) < self.n) {
+                            if !self.hosts.keys().any(|r| r.contains(id)) {
+                                self.world.kill(id);
+                                self.gather().forget(id as usize);
+                                self.revive.retain(|&r| r != id);
+                            }
+                        }
+                        eprintln!("geese-world: agent process {agents} left at step {step}");
+                    }
+                }
+                Parsed::OrchestratorPresence => {
+                    if alive {
+                        self.orchestrator = true;
+                    } else if self.spec.expect_orchestrator {
+                        eprintln!("geese-world: the orchestrator left; stopping");
+                        self.stop = true;
+                    }
+                }
+                _ => {}
+            },
+            Event::Ctl(bytes) => match decode::<Control>(&bytes) {
+                Ok(Control::Stop) => self.stop = true,
+                Ok(Control::Schedule { at_step, change }) => self.scheduled.push((at_step, change)),
+                Ok(Control::Start) => {}
+                Err(_) => self.counters.hostile += 1,
+            },
+            Event::Signal => {
+                eprintln!("geese-world: signal received; stopping");
+                self.stop = true;
+            }
+        }
+    }
+}
