@@ -133,7 +133,8 @@ impl Bt {
     /// Compose several trees under one Parallel root (the fixed-agent "Parallel
     /// strategy", REFERENCE §6.8).
     pub fn parallel(trees: &[Bt]) -> Bt {
-        let mut bt = Bt { nodes: vec![Node { kind: Kind::Parallel, children: Vec::new(), end: 0 }], status: Vec::new() };
+        let mut bt =
+            Bt { nodes: vec![Node { kind: Kind::Parallel, children: Vec::new(), end: 0 }], status: Vec::new() };
         for t in trees {
             let off = bt.nodes.len() as u32;
             bt.nodes[0].children.push(off);
@@ -253,11 +254,8 @@ impl Bt {
     /// BT feedback of the reference code: the number of Selector nodes whose status is
     /// SUCCESS after the tick (stale statuses included).
     pub fn successful_selectors(&self) -> u32 {
-        self.nodes
-            .iter()
-            .zip(&self.status)
-            .filter(|(n, s)| n.kind == Kind::Selector && **s == Status::Success)
-            .count() as u32
+        self.nodes.iter().zip(&self.status).filter(|(n, s)| n.kind == Kind::Selector && **s == Status::Success).count()
+            as u32
     }
 
     /// BT feedback as the paper defines it: +1 per successful post-condition, −2 per

@@ -9,13 +9,11 @@
 //! The order inside `finish_step` is the reference code's (§6.2): tick, visited cells,
 //! fitness, lateral transfer into the pool, genetic operators, update. Genes are copied,
 //! never shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires.
-use crate::bt::{BuildError, Bt};
+use crate::bt::{Bt, BuildError};
 use crate::ge::{self, GeParams, Grammar, Individual};
 use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
-use geese_proto::{
-    AgentId, AgentStats, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept, Regime,
-};
+use geese_proto::{AgentId, AgentStats, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept, Regime};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -268,9 +266,7 @@ impl Learner {
             FitnessVariant::Code => {
                 self.cfg.carry_over * self.carry + explore + self.tree.successful_selectors() as f64
             }
-            FitnessVariant::Paper => {
-                self.cfg.carry_over * self.gene.fitness + explore + self.tree.paper_feedback()
-            }
+            FitnessVariant::Paper => self.cfg.carry_over * self.gene.fitness + explore + self.tree.paper_feedback(),
         };
         // 6. sense: lateral transfer through the IP filter.
         if self.regime.lateral_transfer {

@@ -85,9 +85,9 @@ impl LeafSpec {
             match item {
                 None if req => Err(LeafError::MissingItem(text.into())),
                 None => Ok(None),
-                Some(i) => ObjectKind::from_name(i)
-                    .map(Some)
-                    .ok_or_else(|| LeafError::UnknownItem(i.into(), text.into())),
+                Some(i) => {
+                    ObjectKind::from_name(i).map(Some).ok_or_else(|| LeafError::UnknownItem(i.into(), text.into()))
+                }
             }
         };
         let need = |o: Option<ObjectKind>| o.ok_or_else(|| LeafError::MissingItem(text.into()));
@@ -189,11 +189,8 @@ fn neighbour_objects(v: &mut View, item: Option<ObjectKind>) -> bool {
     let mut found = false;
     // Take the list out to satisfy the borrow checker without cloning.
     let objs = if known { std::mem::take(&mut v.cell_objects) } else { Vec::new() };
-    let extra: Vec<ObjectInfo> = if known {
-        Vec::new()
-    } else {
-        v.impassable.iter().filter(|o| v.registered_in(o, cell)).copied().collect()
-    };
+    let extra: Vec<ObjectInfo> =
+        if known { Vec::new() } else { v.impassable.iter().filter(|o| v.registered_in(o, cell)).copied().collect() };
     for o in objs.iter().chain(extra.iter()) {
         if item.is_some_and(|k| k != o.kind) {
             continue;
@@ -227,7 +224,8 @@ fn probe(v: &mut View, kind: ObjectKind) -> bool {
     }
     let (c, s) = (v.heading.cos(), v.heading.sin());
     for d in 0..3 {
-        let p = Pos::new((v.pos.x as f64 + d as f64 * c).trunc() as i32, (v.pos.y as f64 + d as f64 * s).trunc() as i32);
+        let p =
+            Pos::new((v.pos.x as f64 + d as f64 * c).trunc() as i32, (v.pos.y as f64 + d as f64 * s).trunc() as i32);
         let (p, _) = v.geom.reflect(p, v.heading);
         let cell = v.geom.cell_of(p);
         if let Some(o) = v.impassable.iter().find(|o| o.kind == kind && v.registered_in(o, cell)) {

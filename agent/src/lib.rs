@@ -11,8 +11,8 @@
 pub mod bt;
 pub mod ge;
 pub mod grammars;
-pub mod leaves;
 pub mod learner;
+pub mod leaves;
 pub mod view;
 
 pub use learner::{FitnessVariant, Learner, LearnerConfig};

@@ -5,9 +5,7 @@
 //! behaviours read and change this model; every change the world must make is recorded
 //! as an [`Op`] for the intent. Nothing here touches the real world.
 use geese_proto::geometry::step_destination;
-use geese_proto::{
-    AgentId, CellIdx, Geometry, ObjectId, ObjectInfo, ObjectKind, Op, Percept, Pos,
-};
+use geese_proto::{AgentId, CellIdx, Geometry, ObjectId, ObjectInfo, ObjectKind, Op, Percept, Pos};
 
 /// Per-agent maps indexed by object kind.
 #[derive(Clone, Debug, Default)]

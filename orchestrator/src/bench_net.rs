@@ -52,30 +52,16 @@ pub fn parse_scenarios(s: &str, default_steps: u64) -> Result<Vec<Scenario>> {
     let mut v = Vec::new();
     for item in s.split(',').map(str::trim).filter(|x| !x.is_empty()) {
         let (pk, steps) = match item.split_once(':') {
-            Some((pk, st)) => (
-                pk,
-                st.parse()
-                    .with_context(|| format!("scenario {item:?}: bad STEPS"))?,
-            ),
+            Some((pk, st)) => (pk, st.parse().with_context(|| format!("scenario {item:?}: bad STEPS"))?),
             None => (item, default_steps),
         };
-        let (p, k) = pk
-            .split_once('x')
-            .with_context(|| format!("scenario {item:?}: expected PxK[:STEPS]"))?;
-        let processes: u32 = p
-            .parse()
-            .with_context(|| format!("scenario {item:?}: bad P"))?;
-        let per_process: u32 = k
-            .parse()
-            .with_context(|| format!("scenario {item:?}: bad K"))?;
+        let (p, k) = pk.split_once('x').with_context(|| format!("scenario {item:?}: expected PxK[:STEPS]"))?;
+        let processes: u32 = p.parse().with_context(|| format!("scenario {item:?}: bad P"))?;
+        let per_process: u32 = k.parse().with_context(|| format!("scenario {item:?}: bad K"))?;
         if processes == 0 || per_process == 0 || steps == 0 {
             bail!("scenario {item:?}: P, K and STEPS must be positive");
         }
-        v.push(Scenario {
-            processes,
-            per_process,
-            steps,
-        });
+        v.push(Scenario { processes, per_process, steps });
     }
     Ok(v)
 }
@@ -113,10 +99,7 @@ pub fn bench_net_cmd(args: BenchNetArgs) -> Result<()> {
     );
     for sc in scenarios {
         let agents = sc.processes * sc.per_process;
-        let label = format!(
-            "{} process(es) x {} agent(s) = {agents} agents",
-            sc.processes, sc.per_process
-        );
+        let label = format!("{} process(es) x {} agent(s) = {agents} agents", sc.processes, sc.per_process);
         let bare = run(&args, sc, true).with_context(|| format!("{label}: bare lock-step"))?;
         let bare_rate = bare.reports as f64 / bare.run_seconds.max(1e-9);
         println!(
@@ -132,10 +115,7 @@ pub fn bench_net_cmd(args: BenchNetArgs) -> Result<()> {
         let (mean, max) = if rss.is_empty() {
             (0.0, 0.0)
         } else {
-            (
-                rss.iter().sum::<u64>() as f64 / rss.len() as f64,
-                *rss.iter().max().unwrap_or(&0) as f64,
-            )
+            (rss.iter().sum::<u64>() as f64 / rss.len() as f64, *rss.iter().max().unwrap_or(&0) as f64)
         };
         println!(
             "{label}: learning {} steps in {:.2} s = {:.1} steps/s ({:.0} agent-steps/s), {:.3} of bare; \
@@ -166,22 +146,8 @@ mod tests {
     #[test]
     fn scenarios_parse() {
         let v = parse_scenarios("10x1, 100x1:500,10x100", 12_000).unwrap();
-        assert_eq!(
-            v[0],
-            Scenario {
-                processes: 10,
-                per_process: 1,
-                steps: 12_000
-            }
-        );
-        assert_eq!(
-            v[1],
-            Scenario {
-                processes: 100,
-                per_process: 1,
-                steps: 500
-            }
-        );
+        assert_eq!(v[0], Scenario { processes: 10, per_process: 1, steps: 12_000 });
+        assert_eq!(v[1], Scenario { processes: 100, per_process: 1, steps: 500 });
         assert_eq!(v[2].per_process, 100);
         assert!(parse_scenarios("10", 1).is_err());
         assert!(parse_scenarios("0x1", 1).is_err());

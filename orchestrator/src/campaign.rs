@@ -72,10 +72,7 @@ fn default_stop_interval() -> u64 {
 #[derive(Debug, thiserror::Error)]
 pub enum CampaignError {
     #[error("cannot read campaign {path}: {source}")]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Read { path: PathBuf, source: std::io::Error },
     #[error("campaign {path}: {message}")]
     Parse { path: PathBuf, message: String },
     #[error("campaign: {key}: {reason}")]
@@ -87,10 +84,7 @@ pub enum CampaignError {
 }
 
 fn invalid(key: impl Into<String>, reason: impl Into<String>) -> CampaignError {
-    CampaignError::Invalid {
-        key: key.into(),
-        reason: reason.into(),
-    }
+    CampaignError::Invalid { key: key.into(), reason: reason.into() }
 }
 
 /// One planned trial.
@@ -122,53 +116,29 @@ pub struct Campaign {
 impl Campaign {
     /// Read and validate a campaign file.
     pub fn from_file(path: &Path) -> Result<Campaign, CampaignError> {
-        let text = std::fs::read_to_string(path).map_err(|source| CampaignError::Read {
-            path: path.into(),
-            source,
-        })?;
-        let stem = path
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "campaign".into());
+        let text = std::fs::read_to_string(path).map_err(|source| CampaignError::Read { path: path.into(), source })?;
+        let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "campaign".into());
         Campaign::from_toml(&text, &stem).map_err(|e| match e {
-            CampaignError::Parse { message, .. } => CampaignError::Parse {
-                path: path.into(),
-                message,
-            },
+            CampaignError::Parse { message, .. } => CampaignError::Parse { path: path.into(), message },
             other => other,
         })
     }
 
     /// Parse and validate campaign text; `default_name` is used when the file has none.
     pub fn from_toml(text: &str, default_name: &str) -> Result<Campaign, CampaignError> {
-        let file: CampaignFile = toml::from_str(text).map_err(|e| CampaignError::Parse {
-            path: PathBuf::from("<text>"),
-            message: e.to_string(),
-        })?;
+        let file: CampaignFile = toml::from_str(text)
+            .map_err(|e| CampaignError::Parse { path: PathBuf::from("<text>"), message: e.to_string() })?;
         Campaign::new(file, text.to_string(), default_name)
     }
 
     /// Validate a parsed campaign file.
-    pub fn new(
-        file: CampaignFile,
-        text: String,
-        default_name: &str,
-    ) -> Result<Campaign, CampaignError> {
-        let name = file
-            .name
-            .clone()
-            .unwrap_or_else(|| default_name.to_string());
+    pub fn new(file: CampaignFile, text: String, default_name: &str) -> Result<Campaign, CampaignError> {
+        let name = file.name.clone().unwrap_or_else(|| default_name.to_string());
         if name.trim().is_empty() || name.contains(['/', '\\']) {
-            return Err(invalid(
-                "name",
-                "must be a non-empty name without path separators",
-            ));
+            return Err(invalid("name", "must be a non-empty name without path separators"));
         }
         if file.tasks.is_empty() {
-            return Err(invalid(
-                "tasks",
-                "is empty: name at least one task (\"foraging\", \"nest\")",
-            ));
+            return Err(invalid("tasks", "is empty: name at least one task (\"foraging\", \"nest\")"));
         }
         let mut seen = HashSet::new();
         for t in &file.tasks {
@@ -189,32 +159,19 @@ impl Campaign {
             return Err(invalid("step_stride", "must be at least 1"));
         }
         let conditions = expand_grid(&file.grid)?;
-        let coupling = Coupling {
-            lt_pause_on_obstacles: file.lt_pause_on_obstacles,
-            stop_interval: file.stop_interval,
-        };
+        let coupling =
+            Coupling { lt_pause_on_obstacles: file.lt_pause_on_obstacles, stop_interval: file.stop_interval };
         let pick = |key: &str, v: &Option<String>| -> Result<Option<Knob>, CampaignError> {
             let Some(name) = v else { return Ok(None) };
-            let k = Knob::from_name(name).ok_or_else(|| {
-                invalid(
-                    key,
-                    format!("'{name}' is not a knob (one of: {})", Knob::names()),
-                )
-            })?;
+            let k = Knob::from_name(name)
+                .ok_or_else(|| invalid(key, format!("'{name}' is not a knob (one of: {})", Knob::names())))?;
             if let Some(c) = conditions.iter().find(|c| c.get(k).is_none()) {
-                return Err(invalid(
-                    key,
-                    format!("'{name}' is not set in condition '{}'", c.label()),
-                ));
+                return Err(invalid(key, format!("'{name}' is not set in condition '{}'", c.label())));
             }
             Ok(Some(k))
         };
         let x_by_condition = file.x.as_deref() == Some("condition");
-        let mut x = if x_by_condition {
-            None
-        } else {
-            pick("x", &file.x)?
-        };
+        let mut x = if x_by_condition { None } else { pick("x", &file.x)? };
         let series = pick("series", &file.series)?;
         if x.is_none() && !x_by_condition {
             // The one knob whose level differs between conditions, if it is set in all.
@@ -250,24 +207,12 @@ impl Campaign {
                 let cfg = c
                     .apply(&file.base, task, file.first_seed, coupling)
                     .map_err(|e| invalid(e.knob, format!("{} ({where_})", e.reason)))?;
-                let spec = cfg
-                    .validate()
-                    .map_err(|e| invalid(format!("base or grid ({where_})"), e.to_string()))?;
+                let spec = cfg.validate().map_err(|e| invalid(format!("base or grid ({where_})"), e.to_string()))?;
                 per_task.push(Arc::new(spec));
             }
             specs.push(per_task);
         }
-        Ok(Campaign {
-            name,
-            file,
-            text,
-            conditions,
-            x,
-            x_by_condition,
-            series,
-            coupling,
-            specs,
-        })
+        Ok(Campaign { name, file, text, conditions, x, x_by_condition, series, coupling, specs })
     }
 
     /// Every trial of the campaign, in a fixed order: condition, task, seed.
@@ -276,11 +221,7 @@ impl Campaign {
         for ci in 0..self.conditions.len() {
             for &task in &self.file.tasks {
                 for s in 0..self.file.seeds as u64 {
-                    v.push(PlannedTrial {
-                        condition: ci,
-                        task,
-                        seed: self.file.first_seed + s,
-                    });
+                    v.push(PlannedTrial { condition: ci, task, seed: self.file.first_seed + s });
                 }
             }
         }
@@ -289,12 +230,7 @@ impl Campaign {
 
     /// The validated run of a planned trial.
     pub fn spec(&self, t: &PlannedTrial) -> RunSpec {
-        let ti = self
-            .file
-            .tasks
-            .iter()
-            .position(|&x| x == t.task)
-            .unwrap_or(0);
+        let ti = self.file.tasks.iter().position(|&x| x == t.task).unwrap_or(0);
         let mut spec = (*self.specs[t.condition][ti]).clone();
         spec.config.seed = t.seed;
         spec
@@ -311,10 +247,7 @@ impl Campaign {
 
     /// Label of a condition's series level (empty without a series knob).
     pub fn series_of(&self, condition: usize) -> String {
-        self.series
-            .and_then(|k| self.conditions[condition].get(k))
-            .map(|l| l.to_string())
-            .unwrap_or_default()
+        self.series.and_then(|k| self.conditions[condition].get(k)).map(|l| l.to_string()).unwrap_or_default()
     }
 
     /// Build a planned trial's record (key and configuration) for the store.
@@ -371,26 +304,19 @@ fn level_position(conditions: &[Condition], knob: Option<Knob>, condition: usize
 /// Expand the `[[grid]]` tables into conditions (union of Cartesian products).
 pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError> {
     if grid.is_empty() {
-        return Err(invalid(
-            "grid",
-            "no conditions: add a [[grid]] table with at least one knob",
-        ));
+        return Err(invalid("grid", "no conditions: add a [[grid]] table with at least one knob"));
     }
     let mut out: Vec<Condition> = Vec::new();
     let mut labels = HashSet::new();
     for (gi, table) in grid.iter().enumerate() {
         if table.is_empty() {
-            return Err(invalid(
-                format!("grid[{gi}]"),
-                "is empty: give at least one knob",
-            ));
+            return Err(invalid(format!("grid[{gi}]"), "is empty: give at least one knob"));
         }
         let mut axes: Vec<(Knob, Vec<Level>)> = Vec::new();
         for (key, value) in table {
             let path = format!("grid[{gi}].{key}");
-            let knob = Knob::from_name(key).ok_or_else(|| {
-                invalid(&path, format!("unknown knob (known: {})", Knob::names()))
-            })?;
+            let knob = Knob::from_name(key)
+                .ok_or_else(|| invalid(&path, format!("unknown knob (known: {})", Knob::names())))?;
             let values: Vec<&toml::Value> = match value {
                 toml::Value::Array(a) => a.iter().collect(),
                 scalar => vec![scalar],
@@ -400,14 +326,9 @@ pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError
             }
             let mut levels = Vec::new();
             for (i, v) in values.iter().enumerate() {
-                let l = knob
-                    .level(v)
-                    .map_err(|r| invalid(format!("{path}[{i}]"), r))?;
+                let l = knob.level(v).map_err(|r| invalid(format!("{path}[{i}]"), r))?;
                 if levels.contains(&l) {
-                    return Err(invalid(
-                        format!("{path}[{i}]"),
-                        format!("{l} is listed twice"),
-                    ));
+                    return Err(invalid(format!("{path}[{i}]"), format!("{l} is listed twice")));
                 }
                 levels.push(l);
             }
@@ -446,11 +367,7 @@ pub trait TrialRunner: Sync {
     /// Transport name recorded with every trial ("in-process", "zenoh", …).
     fn transport(&self) -> &str;
     /// Run `spec` to the end, calling `observe` after every step, in step order.
-    fn run(
-        &self,
-        spec: &RunSpec,
-        observe: &mut dyn FnMut(&StepReport),
-    ) -> Result<TrialSummary, TrialError>;
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError>;
 }
 
 /// Trials on the in-memory transport, in the calling thread.
@@ -460,11 +377,7 @@ impl TrialRunner for InProcess {
     fn transport(&self) -> &str {
         "in-process"
     }
-    fn run(
-        &self,
-        spec: &RunSpec,
-        observe: &mut dyn FnMut(&StepReport),
-    ) -> Result<TrialSummary, TrialError> {
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
         Ok(run_trial(spec, observe)?)
     }
 }
@@ -507,9 +420,7 @@ pub fn run_campaign(
     for t in &plan {
         let rec = campaign.record(t);
         match store.find(&rec)? {
-            Some(status) if status == "done" || (status == "failed" && !opts.retry_failed) => {
-                skipped += 1
-            }
+            Some(status) if status == "done" || (status == "failed" && !opts.retry_failed) => skipped += 1,
             Some(_) => {
                 store.remove(&rec)?;
                 pending.push((t.clone(), rec));
@@ -517,16 +428,10 @@ pub fn run_campaign(
             None => pending.push((t.clone(), rec)),
         }
     }
-    let bar = if opts.quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(pending.len() as u64)
-    };
+    let bar = if opts.quiet { ProgressBar::hidden() } else { ProgressBar::new(pending.len() as u64) };
     bar.set_style(
-        ProgressStyle::with_template(
-            "{bar:40} {pos}/{len} trials  [{elapsed_precise} < {eta_precise}]  {msg}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template("{bar:40} {pos}/{len} trials  [{elapsed_precise} < {eta_precise}]  {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(opts.jobs)
@@ -536,11 +441,7 @@ pub fn run_campaign(
     let stop = AtomicBool::new(false);
     let (tx, rx) = std::sync::mpsc::channel::<(TrialRecord, TrialResult)>();
     let stride = campaign.file.step_stride;
-    let mut out = CampaignOutcome {
-        planned: plan.len(),
-        skipped,
-        ..Default::default()
-    };
+    let mut out = CampaignOutcome { planned: plan.len(), skipped, ..Default::default() };
     let mut write_error: Option<StoreError> = None;
     std::thread::scope(|s| {
         let pending = &pending;
@@ -615,10 +516,7 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> TrialResult
     let error = match r {
         Ok(Ok(summary)) => {
             if series.len() as u64 != steps {
-                Some(format!(
-                    "the runner reported {} of {steps} steps",
-                    series.len()
-                ))
+                Some(format!("the runner reported {} of {steps} steps", series.len()))
             } else {
                 return TrialResult {
                     outcome: metrics::outcome(&series, theta),
@@ -708,23 +606,12 @@ mod tests {
         assert!(err("tasks = []\nseeds = 1\n[[grid]]\nip = 0.9\n").contains("tasks"));
         assert!(err("tasks = [\"foraging\"]\nseeds = 0\n[[grid]]\nip = 0.9\n").contains("seeds"));
         assert!(err("seeds = 1\n[[grid]]\nip = 0.9\n").contains("tasks"));
-        assert!(
-            err(&format!("{head}[[grid]]\nip = [0.8, 0.9]\nst = [5, 7]\n"))
-                .contains("x: several knobs vary")
-        );
-        assert!(err(&format!("{head}x = \"size\"\n[[grid]]\nip = [0.9]\n"))
-            .contains("x: 'size' is not set"));
-        assert!(err(&format!("{head}[[grid]]\nobstacles = [2]\n"))
-            .contains("obstacles: needs `obstacles_at`"));
-        assert!(err(&format!(
-            "{head}[base]\nsteps = 100\n[[grid]]\nkill = 0.5\nkill_at = 100\n"
-        ))
-        .contains("kill_at"));
+        assert!(err(&format!("{head}[[grid]]\nip = [0.8, 0.9]\nst = [5, 7]\n")).contains("x: several knobs vary"));
+        assert!(err(&format!("{head}x = \"size\"\n[[grid]]\nip = [0.9]\n")).contains("x: 'size' is not set"));
+        assert!(err(&format!("{head}[[grid]]\nobstacles = [2]\n")).contains("obstacles: needs `obstacles_at`"));
+        assert!(err(&format!("{head}[base]\nsteps = 100\n[[grid]]\nkill = 0.5\nkill_at = 100\n")).contains("kill_at"));
         assert!(err(&format!("{head}[[grid]]\ngrid = [7]\n")).contains("grid"));
-        assert!(
-            err(&format!("{head}[[grid]]\ngrammar = \"no-such-grammar\"\n"))
-                .contains("no-such-grammar")
-        );
+        assert!(err(&format!("{head}[[grid]]\ngrammar = \"no-such-grammar\"\n")).contains("no-such-grammar"));
     }
 
     #[test]
@@ -735,8 +622,7 @@ mod tests {
             for e in std::fs::read_dir(&sub).unwrap() {
                 let p = e.unwrap().path();
                 if p.extension().is_some_and(|x| x == "toml") {
-                    let c =
-                        Campaign::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+                    let c = Campaign::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
                     assert!(c.x.is_some(), "{}: no x knob", p.display());
                     n += 1;
                 }

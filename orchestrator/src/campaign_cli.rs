@@ -87,8 +87,8 @@ pub struct ExportArgs {
 }
 
 pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&a.file)
-        .with_context(|| format!("cannot read campaign {}", a.file.display()))?;
+    let text =
+        std::fs::read_to_string(&a.file).with_context(|| format!("cannot read campaign {}", a.file.display()))?;
     let mut file: CampaignFile =
         toml::from_str(&text).map_err(|e| anyhow::anyhow!("campaign {}: {e}", a.file.display()))?;
     if let Some(v) = a.seeds {
@@ -100,29 +100,16 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
     if let Some(v) = a.agents {
         file.base.world.agents = v;
     }
-    let stem = a
-        .file
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "campaign".into());
-    let campaign = Campaign::new(file, text, &stem)
-        .with_context(|| format!("campaign {}", a.file.display()))?;
-    let db =
-        a.db.clone()
-            .unwrap_or_else(|| PathBuf::from(format!("results/{}.sqlite", campaign.name)));
+    let stem = a.file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "campaign".into());
+    let campaign = Campaign::new(file, text, &stem).with_context(|| format!("campaign {}", a.file.display()))?;
+    let db = a.db.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}.sqlite", campaign.name)));
     let mut store = Store::create(&db)?;
     // The transport is chosen here: a distributed runner (trials over Zenoh) implements
     // `TrialRunner` and is passed instead of `InProcess`.
     let runner: &dyn TrialRunner = &InProcess;
     let plan = campaign.plan();
     let jobs = a.jobs.unwrap_or(0);
-    let threads = if jobs == 0 {
-        std::thread::available_parallelism()
-            .map(|n| n.get())
-            .unwrap_or(1)
-    } else {
-        jobs
-    };
+    let threads = if jobs == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { jobs };
     eprintln!(
         "geese campaign {}: {} conditions × {} task(s) × {} seeds = {} trials, {} at a time ({}), results in {}",
         campaign.name,
@@ -134,11 +121,7 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         runner.transport(),
         db.display()
     );
-    let opts = RunOptions {
-        jobs,
-        retry_failed: a.retry_failed,
-        quiet: a.quiet,
-    };
+    let opts = RunOptions { jobs, retry_failed: a.retry_failed, quiet: a.quiet };
     let out = geese_orchestrator::campaign::run_campaign(&campaign, &mut store, runner, &opts)?;
     println!(
         "{} trials planned: {} already stored, {} run now ({} done, {} failed)",
@@ -159,9 +142,7 @@ pub fn report_cmd(a: ReportArgs) -> Result<()> {
         efficiency: match a.efficiency {
             EfficiencyArg::Paper => EfficiencyChoice::Paper,
             EfficiencyArg::Code => EfficiencyChoice::Code,
-            EfficiencyArg::Sec5Ablation => {
-                EfficiencyChoice::Variant(EfficiencyVariant::Sec5Ablation)
-            }
+            EfficiencyArg::Sec5Ablation => EfficiencyChoice::Variant(EfficiencyVariant::Sec5Ablation),
             EfficiencyArg::Sec5 => EfficiencyChoice::Variant(EfficiencyVariant::Sec5),
             EfficiencyArg::Sec7 => EfficiencyChoice::Variant(EfficiencyVariant::Sec7),
         },
@@ -178,10 +159,7 @@ pub fn report_cmd(a: ReportArgs) -> Result<()> {
     r.print(&mut std::io::stdout().lock())?;
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a.db.file_stem().map(|s| s.to_string_lossy().into_owned());
-        a.db.with_file_name(format!(
-            "{}-report",
-            stem.unwrap_or_else(|| "results".into())
-        ))
+        a.db.with_file_name(format!("{}-report", stem.unwrap_or_else(|| "results".into())))
     });
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let mut files = r.write_csv(&out)?;

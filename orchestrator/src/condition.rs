@@ -132,11 +132,7 @@ impl Knob {
 
     /// All knob names, for error messages.
     pub fn names() -> String {
-        Knob::ALL
-            .iter()
-            .map(|k| k.name())
-            .collect::<Vec<_>>()
-            .join(", ")
+        Knob::ALL.iter().map(|k| k.name()).collect::<Vec<_>>().join(", ")
     }
 
     /// Check one value read from a campaign file and turn it into a level.
@@ -168,12 +164,8 @@ impl Knob {
                     Ok(Level::Text(s.clone()))
                 }
             }
-            (Kind::Int(..), other) => {
-                Err(format!("expected an integer, found {}", other.type_str()))
-            }
-            (Kind::Float(..), other) => {
-                Err(format!("expected a number, found {}", other.type_str()))
-            }
+            (Kind::Int(..), other) => Err(format!("expected an integer, found {}", other.type_str())),
+            (Kind::Float(..), other) => Err(format!("expected a number, found {}", other.type_str())),
             (Kind::Text, other) => Err(format!("expected a string, found {}", other.type_str())),
         }
     }
@@ -202,10 +194,7 @@ pub struct Coupling {
 
 impl Default for Coupling {
     fn default() -> Self {
-        Coupling {
-            lt_pause_on_obstacles: false,
-            stop_interval: DEFAULT_STOP_INTERVAL,
-        }
+        Coupling { lt_pause_on_obstacles: false, stop_interval: DEFAULT_STOP_INTERVAL }
     }
 }
 
@@ -218,10 +207,7 @@ pub struct KnobError {
 }
 
 fn knob_err(knob: Knob, reason: impl Into<String>) -> KnobError {
-    KnobError {
-        knob: knob.name().into(),
-        reason: reason.into(),
-    }
+    KnobError { knob: knob.name().into(), reason: reason.into() }
 }
 
 impl Condition {
@@ -245,33 +231,20 @@ impl Condition {
         if self.levels.is_empty() {
             return "baseline".into();
         }
-        self.levels
-            .iter()
-            .map(|(k, l)| format!("{k}={l}"))
-            .collect::<Vec<_>>()
-            .join(" ")
+        self.levels.iter().map(|(k, l)| format!("{k}={l}")).collect::<Vec<_>>().join(" ")
     }
 
     /// The condition as a JSON object `{knob: value}`.
     pub fn to_json(&self) -> serde_json::Value {
         let mut m = serde_json::Map::new();
         for (k, l) in &self.levels {
-            m.insert(
-                k.name().into(),
-                serde_json::to_value(l).unwrap_or(serde_json::Value::Null),
-            );
+            m.insert(k.name().into(), serde_json::to_value(l).unwrap_or(serde_json::Value::Null));
         }
         serde_json::Value::Object(m)
     }
 
     /// The configuration of this condition for `task` and `seed`, built on `base`.
-    pub fn apply(
-        &self,
-        base: &RunConfig,
-        task: Task,
-        seed: u64,
-        coupling: Coupling,
-    ) -> Result<RunConfig, KnobError> {
+    pub fn apply(&self, base: &RunConfig, task: Task, seed: u64, coupling: Coupling) -> Result<RunConfig, KnobError> {
         let mut c = base.clone();
         c.seed = seed;
         c.world.task = task;
@@ -288,10 +261,7 @@ impl Condition {
         };
         let needs = |k: Knob, other: Knob| -> Result<(), KnobError> {
             if self.get(k).is_some() && self.get(other).is_none() {
-                Err(knob_err(
-                    k,
-                    format!("needs `{other}` in the same condition"),
-                ))
+                Err(knob_err(k, format!("needs `{other}` in the same condition")))
             } else {
                 Ok(())
             }
@@ -353,27 +323,18 @@ impl Condition {
         let mut sched: Vec<Scheduled> = Vec::new();
         if let Some(ip) = self.float(Knob::Ip) {
             match time(Knob::IpAt)? {
-                Some(at) => sched.push(Scheduled {
-                    at,
-                    change: Perturbation::SetIp(ip),
-                }),
+                Some(at) => sched.push(Scheduled { at, change: Perturbation::SetIp(ip) }),
                 None => c.ip = ip,
             }
         }
         if let Some(p) = self.float(Knob::GeneLoss) {
             match time(Knob::GeneLossAt)? {
-                Some(at) => sched.push(Scheduled {
-                    at,
-                    change: Perturbation::SetGeneLoss(p),
-                }),
+                Some(at) => sched.push(Scheduled { at, change: Perturbation::SetGeneLoss(p) }),
                 None => c.gene_loss = p,
             }
         }
         if let (Some(f), Some(at)) = (self.float(Knob::Kill), time(Knob::KillAt)?) {
-            sched.push(Scheduled {
-                at,
-                change: Perturbation::KillFraction(f),
-            });
+            sched.push(Scheduled { at, change: Perturbation::KillFraction(f) });
         }
         // Windows [from, to) during which lateral transfer is off.
         let mut off: Vec<(u64, u64)> = Vec::new();
@@ -381,16 +342,10 @@ impl Condition {
             let at = time(Knob::ObstaclesAt)?.unwrap_or(0);
             sched.push(Scheduled {
                 at,
-                change: Perturbation::AddObstacles {
-                    count: count as u32,
-                    radius: c.world.obstacle_radius,
-                },
+                change: Perturbation::AddObstacles { count: count as u32, radius: c.world.obstacle_radius },
             });
             if coupling.lt_pause_on_obstacles {
-                let pause = self
-                    .int(Knob::StopInterval)
-                    .map(|v| v as u64)
-                    .unwrap_or(coupling.stop_interval);
+                let pause = self.int(Knob::StopInterval).map(|v| v as u64).unwrap_or(coupling.stop_interval);
                 off.push((at, at.saturating_add(pause)));
             }
         }
@@ -398,31 +353,21 @@ impl Condition {
             off.push((at, at.saturating_add(d as u64)));
         }
         if !off.is_empty() {
-            let base_switches = c
-                .perturbations
-                .iter()
-                .any(|p| matches!(p.change, Perturbation::SetLateralTransfer(_)));
+            let base_switches = c.perturbations.iter().any(|p| matches!(p.change, Perturbation::SetLateralTransfer(_)));
             if base_switches {
                 return Err(KnobError {
                     knob: "base.perturbations".into(),
-                    reason:
-                        "already switches lateral transfer; do not combine with lt_off_* knobs or \
+                    reason: "already switches lateral transfer; do not combine with lt_off_* knobs or \
                              lt_pause_on_obstacles"
-                            .into(),
+                        .into(),
                 });
             }
             // With lateral transfer off for the whole run, a window must not switch it on.
             if c.lateral_transfer {
                 for (from, to) in merge_windows(off) {
-                    sched.push(Scheduled {
-                        at: from,
-                        change: Perturbation::SetLateralTransfer(false),
-                    });
+                    sched.push(Scheduled { at: from, change: Perturbation::SetLateralTransfer(false) });
                     if to < steps {
-                        sched.push(Scheduled {
-                            at: to,
-                            change: Perturbation::SetLateralTransfer(true),
-                        });
+                        sched.push(Scheduled { at: to, change: Perturbation::SetLateralTransfer(true) });
                     }
                 }
             }
@@ -459,22 +404,10 @@ mod tests {
 
     #[test]
     fn levels_are_range_checked_by_knob() {
-        assert_eq!(
-            Knob::Ip.level(&toml::Value::Float(0.9)),
-            Ok(Level::Float(0.9))
-        );
-        assert_eq!(
-            Knob::Ip.level(&toml::Value::Integer(1)),
-            Ok(Level::Float(1.0))
-        );
-        assert!(Knob::Ip
-            .level(&toml::Value::Float(1.5))
-            .unwrap_err()
-            .contains("outside"));
-        assert!(Knob::Obstacles
-            .level(&toml::Value::Float(1.0))
-            .unwrap_err()
-            .contains("integer"));
+        assert_eq!(Knob::Ip.level(&toml::Value::Float(0.9)), Ok(Level::Float(0.9)));
+        assert_eq!(Knob::Ip.level(&toml::Value::Integer(1)), Ok(Level::Float(1.0)));
+        assert!(Knob::Ip.level(&toml::Value::Float(1.5)).unwrap_err().contains("outside"));
+        assert!(Knob::Obstacles.level(&toml::Value::Float(1.0)).unwrap_err().contains("integer"));
         assert!(Knob::St.level(&toml::Value::Integer(3)).is_err());
         assert_eq!(Knob::from_name("lt_off_for"), Some(Knob::LtOffFor));
         assert_eq!(Knob::from_name("bogus"), None);
@@ -483,43 +416,21 @@ mod tests {
     #[test]
     fn obstacles_schedule_and_optional_lt_pause() {
         let base = RunConfig::default();
-        let c = cond(&[
-            (Knob::Obstacles, Level::Int(2)),
-            (Knob::ObstaclesAt, Level::Int(3000)),
-        ]);
+        let c = cond(&[(Knob::Obstacles, Level::Int(2)), (Knob::ObstaclesAt, Level::Int(3000))]);
         assert_eq!(c.label(), "obstacles=2 obstacles_at=3000");
         let r = c.apply(&base, Task::Nest, 9, Coupling::default()).unwrap();
         assert_eq!((r.seed, r.world.task), (9, Task::Nest));
         assert_eq!(
             r.perturbations,
-            vec![Scheduled {
-                at: 3000,
-                change: Perturbation::AddObstacles {
-                    count: 2,
-                    radius: 10
-                }
-            }]
+            vec![Scheduled { at: 3000, change: Perturbation::AddObstacles { count: 2, radius: 10 } }]
         );
-        let coupled = Coupling {
-            lt_pause_on_obstacles: true,
-            stop_interval: 1000,
-        };
+        let coupled = Coupling { lt_pause_on_obstacles: true, stop_interval: 1000 };
         let r = c.apply(&base, Task::Foraging, 1, coupled).unwrap();
-        let at: Vec<_> = r
-            .perturbations
-            .iter()
-            .map(|p| (p.at, p.change.clone()))
-            .collect();
+        let at: Vec<_> = r.perturbations.iter().map(|p| (p.at, p.change.clone())).collect();
         assert_eq!(
             at,
             vec![
-                (
-                    3000,
-                    Perturbation::AddObstacles {
-                        count: 2,
-                        radius: 10
-                    }
-                ),
+                (3000, Perturbation::AddObstacles { count: 2, radius: 10 }),
                 (3000, Perturbation::SetLateralTransfer(false)),
                 (4000, Perturbation::SetLateralTransfer(true)),
             ]
@@ -528,10 +439,7 @@ mod tests {
 
     #[test]
     fn overlapping_lt_windows_merge_and_never_switch_on_a_disabled_run() {
-        assert_eq!(
-            merge_windows(vec![(5, 10), (1, 3), (3, 4), (8, 20)]),
-            vec![(1, 4), (5, 20)]
-        );
+        assert_eq!(merge_windows(vec![(5, 10), (1, 3), (3, 4), (8, 20)]), vec![(1, 4), (5, 20)]);
         let c = cond(&[
             (Knob::Obstacles, Level::Int(1)),
             (Knob::ObstaclesAt, Level::Int(1000)),
@@ -539,13 +447,8 @@ mod tests {
             (Knob::LtOffAt, Level::Int(1000)),
             (Knob::LtOffFor, Level::Int(1000)),
         ]);
-        let coupled = Coupling {
-            lt_pause_on_obstacles: true,
-            stop_interval: 1000,
-        };
-        let r = c
-            .apply(&RunConfig::default(), Task::Foraging, 1, coupled)
-            .unwrap();
+        let coupled = Coupling { lt_pause_on_obstacles: true, stop_interval: 1000 };
+        let r = c.apply(&RunConfig::default(), Task::Foraging, 1, coupled).unwrap();
         let lt: Vec<_> = r
             .perturbations
             .iter()
@@ -553,28 +456,12 @@ mod tests {
             .map(|p| p.at)
             .collect();
         assert_eq!(lt, vec![1000, 3500]);
-        let off = RunConfig {
-            lateral_transfer: false,
-            ..RunConfig::default()
-        };
+        let off = RunConfig { lateral_transfer: false, ..RunConfig::default() };
         let r = c.apply(&off, Task::Foraging, 1, coupled).unwrap();
-        assert!(r
-            .perturbations
-            .iter()
-            .all(|p| !matches!(p.change, Perturbation::SetLateralTransfer(_))));
+        assert!(r.perturbations.iter().all(|p| !matches!(p.change, Perturbation::SetLateralTransfer(_))));
         // A window running past the end never switches back on.
-        let late = cond(&[
-            (Knob::LtOffAt, Level::Int(11_000)),
-            (Knob::LtOffFor, Level::Int(4000)),
-        ]);
-        let r = late
-            .apply(
-                &RunConfig::default(),
-                Task::Foraging,
-                1,
-                Coupling::default(),
-            )
-            .unwrap();
+        let late = cond(&[(Knob::LtOffAt, Level::Int(11_000)), (Knob::LtOffFor, Level::Int(4000))]);
+        let r = late.apply(&RunConfig::default(), Task::Foraging, 1, Coupling::default()).unwrap();
         assert_eq!(r.perturbations.len(), 1);
     }
 
@@ -590,58 +477,26 @@ mod tests {
             (Knob::Kill, Level::Float(0.25)),
             (Knob::KillAt, Level::Int(50)),
         ]);
-        let r = c
-            .apply(&RunConfig::default(), Task::Nest, 1, Coupling::default())
-            .unwrap();
+        let r = c.apply(&RunConfig::default(), Task::Nest, 1, Coupling::default()).unwrap();
         assert_eq!(r.grammar.as_deref(), Some("betr-nest-addition"));
-        assert_eq!(
-            (
-                r.ip,
-                r.gene_loss,
-                r.world.width,
-                r.world.height,
-                r.world.grid
-            ),
-            (0.5, 0.0, 300, 300, 5)
-        );
-        assert_eq!(
-            r.perturbations[0],
-            Scheduled {
-                at: 50,
-                change: Perturbation::KillFraction(0.25)
-            }
-        );
-        assert_eq!(
-            r.perturbations[1],
-            Scheduled {
-                at: 100,
-                change: Perturbation::SetGeneLoss(0.2)
-            }
-        );
+        assert_eq!((r.ip, r.gene_loss, r.world.width, r.world.height, r.world.grid), (0.5, 0.0, 300, 300, 5));
+        assert_eq!(r.perturbations[0], Scheduled { at: 50, change: Perturbation::KillFraction(0.25) });
+        assert_eq!(r.perturbations[1], Scheduled { at: 100, change: Perturbation::SetGeneLoss(0.2) });
     }
 
     #[test]
     fn misuse_names_the_knob() {
         let base = RunConfig::default();
-        let e = cond(&[(Knob::Obstacles, Level::Int(2))]).apply(
-            &base,
-            Task::Foraging,
-            1,
-            Coupling::default(),
-        );
+        let e = cond(&[(Knob::Obstacles, Level::Int(2))]).apply(&base, Task::Foraging, 1, Coupling::default());
         assert_eq!(e.unwrap_err().knob, "obstacles");
-        let e = cond(&[
-            (Knob::LtOffAt, Level::Int(12_000)),
-            (Knob::LtOffFor, Level::Int(10)),
-        ])
-        .apply(&base, Task::Foraging, 1, Coupling::default());
-        assert_eq!(e.unwrap_err().knob, "lt_off_at");
-        let e = cond(&[(Knob::Sites, Level::Int(3))]).apply(
+        let e = cond(&[(Knob::LtOffAt, Level::Int(12_000)), (Knob::LtOffFor, Level::Int(10))]).apply(
             &base,
             Task::Foraging,
             1,
             Coupling::default(),
         );
+        assert_eq!(e.unwrap_err().knob, "lt_off_at");
+        let e = cond(&[(Knob::Sites, Level::Int(3))]).apply(&base, Task::Foraging, 1, Coupling::default());
         assert_eq!(e.unwrap_err().knob, "sites");
         let e = cond(&[
             (Knob::Obstacles, Level::Int(1)),

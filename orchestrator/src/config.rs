@@ -89,8 +89,7 @@ pub struct RunSpec {
 impl RunConfig {
     /// Parse a TOML file.
     pub fn from_file(path: &Path) -> Result<RunConfig, ConfigError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| ConfigError::Read { path: path.into(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
         Self::from_toml(&text).map_err(|message| ConfigError::Parse { path: path.into(), message })
     }
 
@@ -142,13 +141,7 @@ impl RunConfig {
         let name = self.grammar_name();
         let (grammar, text) = load_grammar(&name)?;
         let learner = Arc::new(self.learner.clone());
-        Ok(RunSpec {
-            config: self,
-            grammar_name: name,
-            grammar_text: text.into(),
-            grammar: Arc::new(grammar),
-            learner,
-        })
+        Ok(RunSpec { config: self, grammar_name: name, grammar_text: text.into(), grammar: Arc::new(grammar), learner })
     }
 }
 
@@ -164,8 +157,7 @@ pub fn load_grammar(name: &str) -> Result<(Grammar, String), ConfigError> {
             ),
         })?,
     };
-    let g = Grammar::parse(&text)
-        .map_err(|e| ConfigError::Grammar { name: name.into(), message: e.to_string() })?;
+    let g = Grammar::parse(&text).map_err(|e| ConfigError::Grammar { name: name.into(), message: e.to_string() })?;
     Ok((g, text))
 }
 

@@ -31,10 +31,7 @@ pub enum LaunchError {
     #[error("zenoh: {0}")]
     Zenoh(String),
     #[error("{what}: {source}")]
-    Io {
-        what: String,
-        source: std::io::Error,
-    },
+    Io { what: String, source: std::io::Error },
     #[error("cannot find {bin} in {dir} (build the binaries: cargo build --release --bins)")]
     MissingBinary { bin: String, dir: PathBuf },
     #[error("the world server did not start: {0}")]
@@ -153,21 +150,14 @@ impl Swarm {
             c.args(["--subscribe", s]);
         }
         c.stdin(Stdio::null()).stdout(Stdio::null());
-        c.stderr(if self.quiet {
-            Stdio::null()
-        } else {
-            Stdio::inherit()
-        });
+        c.stderr(if self.quiet { Stdio::null() } else { Stdio::inherit() });
         c.kill_on_drop(true);
         c
     }
 
     fn spawn_agent(&mut self, i: usize) -> Result<(), LaunchError> {
         let (first, count) = (self.agents[i].first, self.agents[i].count);
-        let child = self
-            .agent_command(first, count)
-            .spawn()
-            .map_err(io("cannot start geese-agent"))?;
+        let child = self.agent_command(first, count).spawn().map_err(io("cannot start geese-agent"))?;
         self.spawned.extend(child.id());
         let a = &mut self.agents[i];
         a.pid = child.id();
@@ -212,11 +202,7 @@ impl Swarm {
 
     /// PIDs of the agent processes that are running.
     pub fn agent_pids(&self) -> Vec<u32> {
-        self.agents
-            .iter()
-            .filter(|a| !a.killed)
-            .filter_map(|a| a.pid)
-            .collect()
+        self.agents.iter().filter(|a| !a.killed).filter_map(|a| a.pid).collect()
     }
 
     /// Resident set size (KiB) of each running agent process, from /proc.
@@ -230,12 +216,8 @@ impl Swarm {
 
     async fn shutdown(&mut self, grace: Duration) {
         let deadline = Instant::now() + grace;
-        let mut all: Vec<&mut Child> = self
-            .agents
-            .iter_mut()
-            .filter_map(|a| a.child.as_mut())
-            .chain(self.world.as_mut())
-            .collect();
+        let mut all: Vec<&mut Child> =
+            self.agents.iter_mut().filter_map(|a| a.child.as_mut()).chain(self.world.as_mut()).collect();
         for c in all.iter_mut() {
             let left = deadline.saturating_duration_since(Instant::now());
             if tokio::time::timeout(left, c.wait()).await.is_err() {
@@ -290,10 +272,7 @@ pub fn find_bin_dir(bin_dir: Option<&Path>) -> Result<PathBuf, LaunchError> {
     };
     for bin in ["geese-world", "geese-agent"] {
         if !dir.join(bin).exists() {
-            return Err(LaunchError::MissingBinary {
-                bin: bin.into(),
-                dir,
-            });
+            return Err(LaunchError::MissingBinary { bin: bin.into(), dir });
         }
     }
     Ok(dir)
@@ -301,26 +280,17 @@ pub fn find_bin_dir(bin_dir: Option<&Path>) -> Result<PathBuf, LaunchError> {
 
 /// A run name unique to this launch.
 pub fn unique_run_name() -> String {
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_nanos())
-        .unwrap_or(0);
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
     format!("r{}-{:x}", std::process::id(), nanos & 0xffff_ffff)
 }
 
 /// The world server's specification of `spec` under `opts`.
 pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSpec, LaunchError> {
     let c = &spec.config;
-    let json =
-        |v: Result<String, serde_json::Error>| v.map_err(|e| LaunchError::Invalid(e.to_string()));
-    for (name, p) in [
-        ("--intent-loss", opts.loss.intent),
-        ("--percept-loss", opts.loss.percept),
-    ] {
+    let json = |v: Result<String, serde_json::Error>| v.map_err(|e| LaunchError::Invalid(e.to_string()));
+    for (name, p) in [("--intent-loss", opts.loss.intent), ("--percept-loss", opts.loss.percept)] {
         if !(0.0..=1.0).contains(&p) {
-            return Err(LaunchError::Invalid(format!(
-                "{name} {p} is outside [0, 1]"
-            )));
+            return Err(LaunchError::Invalid(format!("{name} {p} is outside [0, 1]")));
         }
     }
     Ok(NetRunSpec {
@@ -333,11 +303,7 @@ pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSp
         grammar_name: spec.grammar_name.clone(),
         grammar_text: spec.grammar_text.to_string(),
         regime: c.regime(),
-        perturbations: c
-            .perturbations
-            .iter()
-            .map(|p| (p.at, p.change.clone()))
-            .collect(),
+        perturbations: c.perturbations.iter().map(|p| (p.at, p.change.clone())).collect(),
         loss: opts.loss,
         deadlines: opts.deadlines,
         bare: opts.bare,
@@ -387,26 +353,17 @@ async fn run_net_async(
     }
     let n = spec.config.world.agents;
     if n == 0 {
-        return Err(LaunchError::Invalid(
-            "a run needs at least one agent".into(),
-        ));
+        return Err(LaunchError::Invalid("a run needs at least one agent".into()));
     }
     let per = match opts.agents_per_process {
-        Some(0) => {
-            return Err(LaunchError::Invalid(
-                "--agents-per-process must be at least 1".into(),
-            ))
-        }
+        Some(0) => return Err(LaunchError::Invalid("--agents-per-process must be at least 1".into())),
         Some(k) => k,
         None => n.div_ceil(opts.processes.max(1)),
     };
     let nspec = net_spec(spec, opts, &run)?;
     let spec_path = std::env::temp_dir().join(format!("geese-{run}.json"));
-    std::fs::write(
-        &spec_path,
-        serde_json::to_vec_pretty(&nspec).map_err(|e| LaunchError::Invalid(e.to_string()))?,
-    )
-    .map_err(io(format!("cannot write {}", spec_path.display())))?;
+    std::fs::write(&spec_path, serde_json::to_vec_pretty(&nspec).map_err(|e| LaunchError::Invalid(e.to_string()))?)
+        .map_err(io(format!("cannot write {}", spec_path.display())))?;
     let _cleanup = RemoveOnDrop(spec_path.clone());
 
     // The world first: it tells where to connect.
@@ -417,18 +374,11 @@ async fn run_net_async(
         .arg(&spec_path)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
-        .stderr(if opts.quiet_children {
-            Stdio::null()
-        } else {
-            Stdio::inherit()
-        })
+        .stderr(if opts.quiet_children { Stdio::null() } else { Stdio::inherit() })
         .kill_on_drop(true);
     let mut world = world.spawn().map_err(io("cannot start geese-world"))?;
     let world_pid = world.id();
-    let stdout = world
-        .stdout
-        .take()
-        .ok_or_else(|| LaunchError::WorldStart("no stdout".into()))?;
+    let stdout = world.stdout.take().ok_or_else(|| LaunchError::WorldStart("no stdout".into()))?;
     let mut lines = BufReader::new(stdout).lines();
     let mut locators = Vec::new();
     let ready = tokio::time::timeout(Duration::from_secs(60), async {
@@ -444,9 +394,7 @@ async fn run_net_async(
     .await;
     if !matches!(ready, Ok(true)) {
         let _ = world.start_kill();
-        return Err(LaunchError::WorldStart(
-            "it did not announce its locator".into(),
-        ));
+        return Err(LaunchError::WorldStart("it did not announce its locator".into()));
     }
     // Keep draining the world's stdout so it never blocks on a full pipe.
     tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
@@ -455,11 +403,7 @@ async fn run_net_async(
     let client = CommonArgs {
         zenoh_config: opts.zenoh.zenoh_config.clone(),
         mode: None,
-        connect: if opts.zenoh.router.is_some() {
-            opts.zenoh.connect.clone()
-        } else {
-            locators.clone()
-        },
+        connect: if opts.zenoh.router.is_some() { opts.zenoh.connect.clone() } else { locators.clone() },
         listen: Vec::new(),
         router: opts.zenoh.router.clone(),
         cfg: opts.zenoh.cfg.clone(),
@@ -481,19 +425,13 @@ async fn run_net_async(
         .declare_subscriber(keys::world_presence(&run))
         .history(true)
         .callback(move |s| {
-            if s.kind() == SampleKind::Delete
-                && keys::parse(&run2, s.key_expr().as_str()) == Parsed::WorldPresence
-            {
+            if s.kind() == SampleKind::Delete && keys::parse(&run2, s.key_expr().as_str()) == Parsed::WorldPresence {
                 let _ = t.send(Ev::WorldGone);
             }
         })
         .await
         .map_err(zerr)?;
-    let token = session
-        .liveliness()
-        .declare_token(keys::orchestrator_presence(&run))
-        .await
-        .map_err(zerr)?;
+    let token = session.liveliness().declare_token(keys::orchestrator_presence(&run)).await.map_err(zerr)?;
 
     let mut swarm = Swarm {
         bin_dir,
@@ -510,13 +448,7 @@ async fn run_net_async(
         let mut first = 0;
         while first < n {
             let count = per.min(n - first);
-            swarm.agents.push(AgentProc {
-                first,
-                count,
-                child: None,
-                pid: None,
-                killed: false,
-            });
+            swarm.agents.push(AgentProc { first, count, child: None, pid: None, killed: false });
             first += count;
         }
         for i in 0..swarm.agents.len() {
@@ -544,8 +476,7 @@ async fn run_net_async(
     let mut agent_rss = Vec::new();
     let mut world_rss = None;
     let rss_at = (c.steps * 9 / 10).max(1);
-    let join_patience =
-        Duration::from_millis(opts.deadlines.join_ms as u64) + Duration::from_secs(10);
+    let join_patience = Duration::from_millis(opts.deadlines.join_ms as u64) + Duration::from_secs(10);
     let mut outcome: Result<(), LaunchError> = Ok(());
     let ctrl_c = tokio::signal::ctrl_c();
     tokio::pin!(ctrl_c);
@@ -553,11 +484,7 @@ async fn run_net_async(
     // once it is gone, give the reports a moment to land before concluding.
     let mut world_gone: Option<Instant> = None;
     loop {
-        let patience = if first_report.is_some() {
-            opts.stall
-        } else {
-            join_patience
-        };
+        let patience = if first_report.is_some() { opts.stall } else { join_patience };
         let mut left = (last_report + patience).saturating_duration_since(Instant::now());
         if let Some(g) = world_gone {
             left = left.min((g + Duration::from_secs(2)).saturating_duration_since(Instant::now()));
@@ -592,9 +519,7 @@ async fn run_net_async(
                     observe(&r, &mut swarm);
                     let step = r.report.step;
                     for k in opts.kill.iter().filter(|k| k.at == step) {
-                        let live: Vec<usize> = (0..swarm.agents.len())
-                            .filter(|&i| !swarm.agents[i].killed)
-                            .collect();
+                        let live: Vec<usize> = (0..swarm.agents.len()).filter(|&i| !swarm.agents[i].killed).collect();
                         for &i in live.iter().rev().take(k.count as usize) {
                             swarm.kill_agent(i);
                         }
@@ -607,10 +532,7 @@ async fn run_net_async(
                         }
                     }
                 }
-                Ok(ReportMsg::Done {
-                    steps,
-                    completed: done,
-                }) => {
+                Ok(ReportMsg::Done { steps, completed: done }) => {
                     completed = done && steps == c.steps;
                     if !completed {
                         outcome = Err(LaunchError::WorldGone(steps));
@@ -639,9 +561,7 @@ async fn run_net_async(
         }
     }
     let _ = token.undeclare().await;
-    swarm
-        .shutdown(Duration::from_secs(if outcome.is_ok() { 15 } else { 5 }))
-        .await;
+    swarm.shutdown(Duration::from_secs(if outcome.is_ok() { 15 } else { 5 })).await;
     let _ = session.close().await;
     outcome?;
     summary.wall_seconds = launched.elapsed().as_secs_f64();
@@ -672,33 +592,20 @@ pub const NET_CSV_HEADER: &str =
 
 /// `geese run --processes N`: run, write `steps.csv`, `net.csv` and the manifest into
 /// `out`, print the same lines as an in-process run.
-pub fn run_cli(
-    spec: &RunSpec,
-    opts: &NetOptions,
-    out: &Path,
-    quiet: bool,
-) -> anyhow::Result<NetOutcome> {
+pub fn run_cli(spec: &RunSpec, opts: &NetOptions, out: &Path, quiet: bool) -> anyhow::Result<NetOutcome> {
     use anyhow::Context;
     let csv_path = out.join("steps.csv");
     let net_path = out.join("net.csv");
-    let mut csv = StepCsv::create(&csv_path)
-        .with_context(|| format!("cannot write {}", csv_path.display()))?;
+    let mut csv = StepCsv::create(&csv_path).with_context(|| format!("cannot write {}", csv_path.display()))?;
     let mut net = std::io::BufWriter::new(
-        std::fs::File::create(&net_path)
-            .with_context(|| format!("cannot write {}", net_path.display()))?,
+        std::fs::File::create(&net_path).with_context(|| format!("cannot write {}", net_path.display()))?,
     );
     writeln!(net, "{NET_CSV_HEADER}")?;
     let steps = spec.config.steps;
-    let bar = if quiet {
-        indicatif::ProgressBar::hidden()
-    } else {
-        indicatif::ProgressBar::new(steps)
-    };
+    let bar = if quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(steps) };
     bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{bar:40} {pos}/{len} steps  {msg}  [{elapsed} < {eta}]",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} steps  {msg}  [{elapsed} < {eta}]")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let mut io_err: Option<std::io::Error> = None;
     let outcome = run_net(spec, opts, |r, _| {
@@ -726,10 +633,7 @@ pub fn run_cli(
         }
         if rep.step % 50 == 0 {
             bar.set_position(rep.step);
-            bar.set_message(format!(
-                "task {:.2} %  live {}",
-                rep.task_pct, rep.live_agents
-            ));
+            bar.set_message(format!("task {:.2} %  live {}", rep.task_pct, rep.live_agents));
         }
     });
     bar.finish_and_clear();
@@ -833,10 +737,7 @@ impl NetArgs {
         Ok(Some(NetOptions {
             processes,
             agents_per_process: self.agents_per_process,
-            loss: LossRates {
-                intent: self.intent_loss.unwrap_or(0.0),
-                percept: self.percept_loss.unwrap_or(0.0),
-            },
+            loss: LossRates { intent: self.intent_loss.unwrap_or(0.0), percept: self.percept_loss.unwrap_or(0.0) },
             deadlines,
             zenoh: self.zenoh.clone(),
             bin_dir: self.bin_dir.clone(),

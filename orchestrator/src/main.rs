@@ -208,9 +208,8 @@ fn parse_genome(s: &str) -> Result<Vec<u32>> {
         if tok.is_empty() {
             bail!("genome: codon {} is empty (expected comma-separated non-negative integers)", i + 1);
         }
-        let v: u32 = tok
-            .parse()
-            .with_context(|| format!("genome: codon {} ('{tok}') is not a non-negative integer", i + 1))?;
+        let v: u32 =
+            tok.parse().with_context(|| format!("genome: codon {} ('{tok}') is not a non-negative integer", i + 1))?;
         g.push(v);
     }
     Ok(g)
@@ -330,10 +329,7 @@ fn net_run_cmd(
     println!("final task %: {:.2}", s.final_task_pct);
     match s.first_step_at_threshold {
         Some(st) => println!("reached {} % at step {st}", c.threshold),
-        None => println!(
-            "never reached {} % (max {:.2} %)",
-            c.threshold, s.max_task_pct
-        ),
+        None => println!("never reached {} % (max {:.2} %)", c.threshold, s.max_task_pct),
     }
     println!(
         "wall time: {:.2} s ({:.1} steps/s once all processes were present)",

@@ -145,37 +145,24 @@ pub fn efficiency_sec7(t_thetas: &[f64], t_max: f64) -> Vec<f64> {
     let t_min = t_thetas.iter().copied().fold(f64::INFINITY, f64::min);
     t_thetas
         .iter()
-        .map(|&t| {
-            if t_max - t_min <= 0.0 {
-                0.0
-            } else {
-                (1.0 - (t - t_min) / (t_max - t_min)) * 100.0
-            }
-        })
+        .map(|&t| if t_max - t_min <= 0.0 { 0.0 } else { (1.0 - (t - t_min) / (t_max - t_min)) * 100.0 })
         .collect()
 }
 
 /// Efficiency of every trial of one condition under `v`.
 pub fn efficiencies(outcomes: &[Outcome], v: EfficiencyVariant) -> Vec<f64> {
     match v {
-        EfficiencyVariant::Paper => outcomes
-            .iter()
-            .map(|o| efficiency_paper(o.first_at_threshold, o.steps))
-            .collect(),
+        EfficiencyVariant::Paper => outcomes.iter().map(|o| efficiency_paper(o.first_at_threshold, o.steps)).collect(),
         EfficiencyVariant::Sec5Ablation => outcomes
             .iter()
             .map(|o| efficiency_sec5(t_theta_code(o), T_MIN_SEC5_ABLATION, o.steps as f64, false))
             .collect(),
-        EfficiencyVariant::Sec5 => outcomes
-            .iter()
-            .map(|o| efficiency_sec5(t_theta_code(o), T_MIN_SEC5, o.steps as f64, true))
-            .collect(),
+        EfficiencyVariant::Sec5 => {
+            outcomes.iter().map(|o| efficiency_sec5(t_theta_code(o), T_MIN_SEC5, o.steps as f64, true)).collect()
+        }
         EfficiencyVariant::Sec7 => {
             let t_max = outcomes.iter().map(|o| o.steps).max().unwrap_or(0) as f64;
-            efficiency_sec7(
-                &outcomes.iter().map(t_theta_code).collect::<Vec<_>>(),
-                t_max,
-            )
+            efficiency_sec7(&outcomes.iter().map(t_theta_code).collect::<Vec<_>>(), t_max)
         }
     }
 }
@@ -241,11 +228,7 @@ pub fn ols(xs: &[f64], ys: &[f64]) -> Option<(f64, f64)> {
     if sxx == 0.0 {
         return None;
     }
-    let sxy: f64 = xs[..n]
-        .iter()
-        .zip(&ys[..n])
-        .map(|(x, y)| (x - mx) * (y - my))
-        .sum();
+    let sxy: f64 = xs[..n].iter().zip(&ys[..n]).map(|(x, y)| (x - mx) * (y - my)).sum();
     let slope = sxy / sxx;
     Some((slope, my - slope * mx))
 }
@@ -320,14 +303,8 @@ mod tests {
         close(efficiency_sec5(1800.0, 5200.0, 12_000.0, false), 150.0);
         // ... and symmetrically below it in the absolute form: |1000 − 2756| = 1756,
         // 1 − 1756/9244 = 0.81003894418...
-        close(
-            efficiency_sec5(1000.0, 2756.0, 12_000.0, true),
-            (1.0 - 1756.0 / 9244.0) * 100.0,
-        );
-        let es = efficiencies(
-            &[o(Some(8599), 3401, 12_000), o(None, 0, 12_000)],
-            EfficiencyVariant::Sec5Ablation,
-        );
+        close(efficiency_sec5(1000.0, 2756.0, 12_000.0, true), (1.0 - 1756.0 / 9244.0) * 100.0);
+        let es = efficiencies(&[o(Some(8599), 3401, 12_000), o(None, 0, 12_000)], EfficiencyVariant::Sec5Ablation);
         close(es[0], 50.0);
         close(es[1], 0.0);
     }
@@ -339,14 +316,8 @@ mod tests {
         close(e[0], 100.0);
         close(e[1], 80.0);
         close(e[2], 0.0);
-        assert_eq!(
-            efficiency_sec7(&[12_000.0, 12_000.0], 12_000.0),
-            vec![0.0, 0.0]
-        );
-        let es = efficiencies(
-            &[o(Some(1999), 10, 12_000), o(Some(3999), 10, 12_000)],
-            EfficiencyVariant::Sec7,
-        );
+        assert_eq!(efficiency_sec7(&[12_000.0, 12_000.0], 12_000.0), vec![0.0, 0.0]);
+        let es = efficiencies(&[o(Some(1999), 10, 12_000), o(Some(3999), 10, 12_000)], EfficiencyVariant::Sec7);
         close(es[0], 100.0);
         close(es[1], 80.0);
     }

@@ -12,7 +12,8 @@ use std::io::Write;
 use std::path::Path;
 
 /// Header of the per-step CSV.
-pub const CSV_HEADER: &str = "step,task_pct,lt_mean,lt_std,genetic_steps,stagnation_steps,live_agents,missing_intents,rejected,genes_lost";
+pub const CSV_HEADER: &str =
+    "step,task_pct,lt_mean,lt_std,genetic_steps,stagnation_steps,live_agents,missing_intents,rejected,genes_lost";
 
 /// One CSV line of a step report.
 pub fn csv_row(r: &StepReport) -> String {

@@ -77,9 +77,7 @@ type Drawn = Result<(), String>;
 
 mod glyphs {
     use plotters::prelude::{BitMapBackend, DrawingBackend};
-    use plotters_backend::{
-        BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind, FontStyle,
-    };
+    use plotters_backend::{BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind, FontStyle};
 
     /// The bitmap backend with its text drawn by ab_glyph directly. plotters 0.3.7's own
     /// ab_glyph text path drops every glyph's left side bearing, which splits words
@@ -88,8 +86,7 @@ mod glyphs {
     pub(super) struct Glyphs<'a>(pub(super) BitMapBackend<'a>);
 
     fn glyph_fonts() -> &'static [ab_glyph::FontRef<'static>] {
-        static FONTS: std::sync::OnceLock<Vec<ab_glyph::FontRef<'static>>> =
-            std::sync::OnceLock::new();
+        static FONTS: std::sync::OnceLock<Vec<ab_glyph::FontRef<'static>>> = std::sync::OnceLock::new();
         FONTS.get_or_init(|| {
             [dejavu::sans::regular(), dejavu::sans::bold()]
                 .into_iter()
@@ -120,16 +117,10 @@ mod glyphs {
             prev = Some(id);
             if let Some(outline) = font.outline_glyph(glyph) {
                 let b = outline.px_bounds();
-                outline.draw(|x, y, c| {
-                    px.push((b.min.x as i32 + x as i32, b.min.y as i32 + y as i32, c))
-                });
+                outline.draw(|x, y, c| px.push((b.min.x as i32 + x as i32, b.min.y as i32 + y as i32, c)));
             }
         }
-        (
-            px,
-            caret.ceil().max(0.0) as u32,
-            (sf.ascent() - sf.descent()).ceil().max(0.0) as u32,
-        )
+        (px, caret.ceil().max(0.0) as u32, (sf.ascent() - sf.descent()).ceil().max(0.0) as u32)
     }
 
     impl<'a> DrawingBackend for Glyphs<'a> {
@@ -143,11 +134,7 @@ mod glyphs {
         fn present(&mut self) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
             self.0.present()
         }
-        fn draw_pixel(
-            &mut self,
-            p: BackendCoord,
-            c: BackendColor,
-        ) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
+        fn draw_pixel(&mut self, p: BackendCoord, c: BackendColor) -> Result<(), DrawingErrorKind<Self::ErrorType>> {
             self.0.draw_pixel(p, c)
         }
         fn draw_line<S: BackendStyle>(
@@ -217,8 +204,7 @@ mod glyphs {
             if color.alpha == 0.0 {
                 return Ok(());
             }
-            let (px, w, h) =
-                rasterize(text, style.size(), matches!(style.style(), FontStyle::Bold));
+            let (px, w, h) = rasterize(text, style.size(), matches!(style.style(), FontStyle::Bold));
             let (w, h) = (w as i32, h as i32);
             let dx = match style.anchor().h_pos {
                 HPos::Left => 0,
@@ -236,13 +222,8 @@ mod glyphs {
                 let (x, y) = trans.transform(x + dx, y + dy);
                 let (x, y) = (pos.0 + x, pos.1 + y);
                 if x >= 0 && y >= 0 && x < sw as i32 && y < sh as i32 && c > 0.0 {
-                    self.0.draw_pixel(
-                        (x, y),
-                        BackendColor {
-                            alpha: color.alpha * c.min(1.0) as f64,
-                            rgb: color.rgb,
-                        },
-                    )?;
+                    self.0
+                        .draw_pixel((x, y), BackendColor { alpha: color.alpha * c.min(1.0) as f64, rgb: color.rgb })?;
                 }
             }
             Ok(())
@@ -263,30 +244,19 @@ fn both(
     let svg = stem.with_extension("svg");
     let err = |path: &Path| {
         let path = path.to_path_buf();
-        move |message: String| PlotError {
-            path: path.clone(),
-            message,
-        }
+        move |message: String| PlotError { path: path.clone(), message }
     };
     {
         let root = Glyphs(BitMapBackend::new(&png, size)).into_drawing_area();
-        root.fill(&WHITE)
-            .map_err(|e| e.to_string())
-            .map_err(err(&png))?;
+        root.fill(&WHITE).map_err(|e| e.to_string()).map_err(err(&png))?;
         f(&root).map_err(err(&png))?;
-        root.present()
-            .map_err(|e| e.to_string())
-            .map_err(err(&png))?;
+        root.present().map_err(|e| e.to_string()).map_err(err(&png))?;
     }
     {
         let root = SVGBackend::new(&svg, size).into_drawing_area();
-        root.fill(&WHITE)
-            .map_err(|e| e.to_string())
-            .map_err(err(&svg))?;
+        root.fill(&WHITE).map_err(|e| e.to_string()).map_err(err(&svg))?;
         g(&root).map_err(err(&svg))?;
-        root.present()
-            .map_err(|e| e.to_string())
-            .map_err(err(&svg))?;
+        root.present().map_err(|e| e.to_string()).map_err(err(&svg))?;
     }
     Ok(vec![png, svg])
 }
@@ -296,18 +266,8 @@ fn s<E: std::fmt::Display>(e: E) -> String {
 }
 
 /// Task % over time: one median line and IQR band per curve, the threshold dashed.
-pub fn learning_curves(
-    stem: &Path,
-    title: &str,
-    curves: &[Curve],
-    threshold: f64,
-) -> Result<Vec<PathBuf>, PlotError> {
-    both(
-        stem,
-        (1000, 640),
-        |r| draw_curves(r, title, curves, threshold),
-        |r| draw_curves(r, title, curves, threshold),
-    )
+pub fn learning_curves(stem: &Path, title: &str, curves: &[Curve], threshold: f64) -> Result<Vec<PathBuf>, PlotError> {
+    both(stem, (1000, 640), |r| draw_curves(r, title, curves, threshold), |r| draw_curves(r, title, curves, threshold))
 }
 
 fn draw_curves<DB: DrawingBackend>(
@@ -316,13 +276,7 @@ fn draw_curves<DB: DrawingBackend>(
     curves: &[Curve],
     threshold: f64,
 ) -> Drawn {
-    let t_max = curves
-        .iter()
-        .filter_map(|c| c.steps.last())
-        .copied()
-        .max()
-        .unwrap_or(1)
-        .max(1);
+    let t_max = curves.iter().filter_map(|c| c.steps.last()).copied().max().unwrap_or(1).max(1);
     let mut chart = ChartBuilder::on(root)
         .caption(title, (FONT, 20))
         .margin(15)
@@ -352,22 +306,9 @@ fn draw_curves<DB: DrawingBackend>(
         .map_err(s)?;
     for (i, c) in curves.iter().enumerate() {
         let col = color(i);
-        let mut band: Vec<(f64, f64)> = c
-            .steps
-            .iter()
-            .zip(&c.q3)
-            .map(|(&x, &y)| (x as f64, y))
-            .collect();
-        band.extend(
-            c.steps
-                .iter()
-                .zip(&c.q1)
-                .rev()
-                .map(|(&x, &y)| (x as f64, y)),
-        );
-        chart
-            .draw_series(std::iter::once(Polygon::new(band, col.mix(0.18).filled())))
-            .map_err(s)?;
+        let mut band: Vec<(f64, f64)> = c.steps.iter().zip(&c.q3).map(|(&x, &y)| (x as f64, y)).collect();
+        band.extend(c.steps.iter().zip(&c.q1).rev().map(|(&x, &y)| (x as f64, y)));
+        chart.draw_series(std::iter::once(Polygon::new(band, col.mix(0.18).filled()))).map_err(s)?;
         chart
             .draw_series(LineSeries::new(
                 c.steps.iter().zip(&c.median).map(|(&x, &y)| (x as f64, y)),
@@ -389,19 +330,9 @@ fn draw_curves<DB: DrawingBackend>(
 }
 
 /// Per-trial points against x position, with the least-squares line, one panel each.
-pub fn scatter(
-    stem: &Path,
-    title: &str,
-    panels: &[ScatterPanel],
-    x_label: &str,
-) -> Result<Vec<PathBuf>, PlotError> {
+pub fn scatter(stem: &Path, title: &str, panels: &[ScatterPanel], x_label: &str) -> Result<Vec<PathBuf>, PlotError> {
     let w = 560 * panels.len().max(1) as u32;
-    both(
-        stem,
-        (w, 560),
-        |r| draw_scatter(r, title, panels, x_label),
-        |r| draw_scatter(r, title, panels, x_label),
-    )
+    both(stem, (w, 560), |r| draw_scatter(r, title, panels, x_label), |r| draw_scatter(r, title, panels, x_label))
 }
 
 /// Deterministic horizontal jitter in [−0.15, 0.15] for the i-th point.
@@ -410,11 +341,7 @@ fn jitter(i: usize) -> f64 {
 }
 
 fn tick_label(ticks: &[(f64, String)], x: f64) -> String {
-    ticks
-        .iter()
-        .find(|(p, _)| (p - x).abs() < 1e-6)
-        .map(|(_, l)| l.clone())
-        .unwrap_or_default()
+    ticks.iter().find(|(p, _)| (p - x).abs() < 1e-6).map(|(_, l)| l.clone()).unwrap_or_default()
 }
 
 fn draw_scatter<DB: DrawingBackend>(
@@ -427,10 +354,7 @@ fn draw_scatter<DB: DrawingBackend>(
     let areas = root.split_evenly((1, panels.len().max(1)));
     for (p, area) in panels.iter().zip(areas) {
         let k = p.ticks.len().max(1) as f64;
-        let (lo, hi) = p
-            .points
-            .iter()
-            .fold((0f64, 100f64), |(lo, hi), &(_, y)| (lo.min(y), hi.max(y)));
+        let (lo, hi) = p.points.iter().fold((0f64, 100f64), |(lo, hi), &(_, y)| (lo.min(y), hi.max(y)));
         let pad = (hi - lo) * 0.05;
         let mut chart = ChartBuilder::on(&area)
             .caption(&p.title, (FONT, 16))
@@ -453,9 +377,12 @@ fn draw_scatter<DB: DrawingBackend>(
             .draw()
             .map_err(s)?;
         chart
-            .draw_series(p.points.iter().enumerate().map(|(i, &(x, y))| {
-                Circle::new((x + jitter(i), y), 3, color(0).mix(0.55).filled())
-            }))
+            .draw_series(
+                p.points
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &(x, y))| Circle::new((x + jitter(i), y), 3, color(0).mix(0.55).filled())),
+            )
             .map_err(s)?;
         if let Some((m, b)) = p.fit {
             chart
@@ -495,11 +422,7 @@ fn draw_boxes<DB: DrawingBackend>(
     x_label: &str,
 ) -> Drawn {
     let k = groups.len().max(1) as f64;
-    let ticks: Vec<(f64, String)> = groups
-        .iter()
-        .enumerate()
-        .map(|(i, g)| (i as f64 + 1.0, g.label.clone()))
-        .collect();
+    let ticks: Vec<(f64, String)> = groups.iter().enumerate().map(|(i, g)| (i as f64 + 1.0, g.label.clone())).collect();
     let mut chart = ChartBuilder::on(root)
         .caption(title, (FONT, 20))
         .margin(15)
@@ -539,17 +462,8 @@ fn draw_boxes<DB: DrawingBackend>(
                 continue;
             };
             let iqr = q3 - q1;
-            let lo = v
-                .iter()
-                .copied()
-                .find(|&x| x >= q1 - 1.5 * iqr)
-                .unwrap_or(q1);
-            let hi = v
-                .iter()
-                .rev()
-                .copied()
-                .find(|&x| x <= q3 + 1.5 * iqr)
-                .unwrap_or(q3);
+            let lo = v.iter().copied().find(|&x| x >= q1 - 1.5 * iqr).unwrap_or(q1);
+            let hi = v.iter().rev().copied().find(|&x| x <= q3 + 1.5 * iqr).unwrap_or(q3);
             let c = gi as f64 + 1.0 + (si as f64 - (ns as f64 - 1.0) / 2.0) * width;
             let half = width * 0.4;
             let series_box = chart
@@ -561,34 +475,21 @@ fn draw_boxes<DB: DrawingBackend>(
             if first && !series_label.is_empty() {
                 series_box
                     .label(series_label.clone())
-                    .legend(move |(x, y)| {
-                        Rectangle::new([(x, y - 5), (x + 14, y + 5)], col.mix(0.6).filled())
-                    });
+                    .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], col.mix(0.6).filled()));
             }
             first = false;
             chart
                 .draw_series([
-                    PathElement::new(
-                        vec![(c - half, med), (c + half, med)],
-                        BLACK.stroke_width(2),
-                    ),
+                    PathElement::new(vec![(c - half, med), (c + half, med)], BLACK.stroke_width(2)),
                     PathElement::new(vec![(c, q3), (c, hi)], col.stroke_width(1)),
                     PathElement::new(vec![(c, q1), (c, lo)], col.stroke_width(1)),
-                    PathElement::new(
-                        vec![(c - half / 2.0, hi), (c + half / 2.0, hi)],
-                        col.stroke_width(1),
-                    ),
-                    PathElement::new(
-                        vec![(c - half / 2.0, lo), (c + half / 2.0, lo)],
-                        col.stroke_width(1),
-                    ),
+                    PathElement::new(vec![(c - half / 2.0, hi), (c + half / 2.0, hi)], col.stroke_width(1)),
+                    PathElement::new(vec![(c - half / 2.0, lo), (c + half / 2.0, lo)], col.stroke_width(1)),
                 ])
                 .map_err(s)?;
             chart
                 .draw_series(
-                    v.iter()
-                        .filter(|&&x| x < lo || x > hi)
-                        .map(|&x| Circle::new((c, x), 3, col.stroke_width(1))),
+                    v.iter().filter(|&&x| x < lo || x > hi).map(|&x| Circle::new((c, x), 3, col.stroke_width(1))),
                 )
                 .map_err(s)?;
         }

@@ -40,10 +40,7 @@ pub enum ReportError {
     )]
     NoCodeEfficiency,
     #[error("cannot write {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
 }
 
 /// Metrics of one trial.
@@ -138,9 +135,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
     let mut kept: Vec<&StoredTrial> = Vec::new();
     let mut per_group: HashMap<(String, String), usize> = HashMap::new();
     for t in trials.iter().filter(|t| t.outcome.is_some()) {
-        let n = per_group
-            .entry((t.task.clone(), t.x_label.clone()))
-            .or_default();
+        let n = per_group.entry((t.task.clone(), t.x_label.clone())).or_default();
         if opts.cap.is_none_or(|c| *n < c) {
             *n += 1;
             kept.push(t);
@@ -149,10 +144,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
     // Efficiency is computed per condition (Sec.-7 t_min is per condition).
     let mut by_cond: BTreeMap<(String, i64), Vec<&StoredTrial>> = BTreeMap::new();
     for t in &kept {
-        by_cond
-            .entry((t.task.clone(), t.condition_index))
-            .or_default()
-            .push(t);
+        by_cond.entry((t.task.clone(), t.condition_index)).or_default().push(t);
     }
     // x positions per task: sorted distinct x values.
     let mut xs: BTreeMap<String, Vec<f64>> = BTreeMap::new();
@@ -170,11 +162,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
         let outcomes: Vec<Outcome> = ts.iter().filter_map(|t| t.outcome).collect();
         let effs = metrics::efficiencies(&outcomes, efficiency);
         for (t, (o, e)) in ts.iter().zip(outcomes.iter().zip(effs)) {
-            let pos = xs
-                .get(task)
-                .and_then(|v| v.iter().position(|x| *x == t.x))
-                .unwrap_or(0) as f64
-                + 1.0;
+            let pos = xs.get(task).and_then(|v| v.iter().position(|x| *x == t.x)).unwrap_or(0) as f64 + 1.0;
             points.push(Point {
                 task: task.clone(),
                 condition: t.condition.clone(),
@@ -191,29 +179,17 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
         }
     }
     points.sort_by(|a, b| {
-        a.task
-            .cmp(&b.task)
-            .then(a.x.total_cmp(&b.x))
-            .then(a.condition.cmp(&b.condition))
-            .then(a.seed.cmp(&b.seed))
+        a.task.cmp(&b.task).then(a.x.total_cmp(&b.x)).then(a.condition.cmp(&b.condition)).then(a.seed.cmp(&b.seed))
     });
     // Per-condition rows (failed trials counted from all trials).
     let mut conditions = Vec::new();
-    let mut cond_order: Vec<(String, i64, String)> = trials
-        .iter()
-        .map(|t| (t.task.clone(), t.condition_index, t.condition.clone()))
-        .collect();
+    let mut cond_order: Vec<(String, i64, String)> =
+        trials.iter().map(|t| (t.task.clone(), t.condition_index, t.condition.clone())).collect();
     cond_order.sort();
     cond_order.dedup();
     for (task, _, label) in &cond_order {
-        let pts: Vec<&Point> = points
-            .iter()
-            .filter(|p| &p.task == task && &p.condition == label)
-            .collect();
-        let failed = trials
-            .iter()
-            .filter(|t| &t.task == task && &t.condition == label && t.outcome.is_none())
-            .count();
+        let pts: Vec<&Point> = points.iter().filter(|p| &p.task == task && &p.condition == label).collect();
+        let failed = trials.iter().filter(|t| &t.task == task && &t.condition == label && t.outcome.is_none()).count();
         conditions.push(row(task, label.clone(), &pts, failed));
     }
     // Pooled per x level, and fits.
@@ -221,15 +197,9 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
     let mut fits = Vec::new();
     for (task, levels) in &xs {
         for x in levels {
-            let pts: Vec<&Point> = points
-                .iter()
-                .filter(|p| &p.task == task && p.x == *x)
-                .collect();
+            let pts: Vec<&Point> = points.iter().filter(|p| &p.task == task && p.x == *x).collect();
             let label = pts.first().map(|p| p.x_label.clone()).unwrap_or_default();
-            let failed = trials
-                .iter()
-                .filter(|t| &t.task == task && t.x == *x && t.outcome.is_none())
-                .count();
+            let failed = trials.iter().filter(|t| &t.task == task && t.x == *x && t.outcome.is_none()).count();
             groups.push(row(task, label, &pts, failed));
         }
         let pts: Vec<&Point> = points.iter().filter(|p| &p.task == task).collect();
@@ -237,10 +207,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
         let unit: Vec<f64> = pts.iter().map(|p| p.x).collect();
         for (metric, ys) in [
             ("power", pts.iter().map(|p| p.power).collect::<Vec<_>>()),
-            (
-                "efficiency",
-                pts.iter().map(|p| p.efficiency).collect::<Vec<_>>(),
-            ),
+            ("efficiency", pts.iter().map(|p| p.efficiency).collect::<Vec<_>>()),
         ] {
             let by_pos = metrics::ols(&pos, &ys);
             fits.push(Fit {
@@ -275,22 +242,13 @@ fn fmt_opt(v: Option<f64>) -> String {
 
 fn fmt_stats(s: &Option<Stats>) -> [String; 3] {
     match s {
-        Some(s) => [
-            format!("{:.2}", s.mean),
-            format!("{:.2}", s.median),
-            format!("{:.2}", s.iqr()),
-        ],
+        Some(s) => [format!("{:.2}", s.mean), format!("{:.2}", s.median), format!("{:.2}", s.iqr())],
         None => ["-".into(), "-".into(), "-".into()],
     }
 }
 
 fn table(out: &mut dyn Write, first: &str, rows: &[Row]) -> std::io::Result<()> {
-    let w = rows
-        .iter()
-        .map(|r| r.label.len())
-        .max()
-        .unwrap_or(0)
-        .max(first.len());
+    let w = rows.iter().map(|r| r.label.len()).max().unwrap_or(0).max(first.len());
     writeln!(
         out,
         "{:<9} {:<w$} {:>6} {:>6} {:>8}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}",
@@ -353,11 +311,7 @@ impl Report {
         if !self.x_name.is_empty() {
             writeln!(out, "\nPooled by {}:", self.x_name)?;
             table(out, &self.x_name, &self.groups)?;
-            writeln!(
-                out,
-                "\nLeast-squares slope across conditions (per trial metric vs {}):",
-                self.x_name
-            )?;
+            writeln!(out, "\nLeast-squares slope across conditions (per trial metric vs {}):", self.x_name)?;
             writeln!(
                 out,
                 "{:<9} {:<10} {:>6} {:>14} {:>14}",
@@ -375,8 +329,7 @@ impl Report {
                 )?;
             }
         }
-        let failed: Vec<&StoredTrial> =
-            self.trials.iter().filter(|t| t.outcome.is_none()).collect();
+        let failed: Vec<&StoredTrial> = self.trials.iter().filter(|t| t.outcome.is_none()).collect();
         if !failed.is_empty() {
             writeln!(out, "\nFailed trials:")?;
             for t in failed.iter().take(20) {
@@ -423,9 +376,7 @@ impl Report {
         };
         files.push(rows_csv("conditions.csv", &self.conditions)?);
         files.push(rows_csv("pooled.csv", &self.groups)?);
-        let mut s = String::from(
-            "task,metric,trials,slope_per_position,intercept_per_position,slope_per_unit\n",
-        );
+        let mut s = String::from("task,metric,trials,slope_per_position,intercept_per_position,slope_per_unit\n");
         let o = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
         for f in &self.fits {
             s.push_str(&format!(
@@ -439,9 +390,7 @@ impl Report {
             ));
         }
         files.push(write_file(&dir.join("fits.csv"), &s)?);
-        let mut s = String::from(
-            "task,condition,seed,x,x_position,series,success,power,efficiency,final_task_pct\n",
-        );
+        let mut s = String::from("task,condition,seed,x,x_position,series,success,power,efficiency,final_task_pct\n");
         for p in &self.points {
             s.push_str(&format!(
                 "{},{},{},{},{},{},{},{},{},{}\n",
@@ -463,16 +412,9 @@ impl Report {
 
     /// Draw every figure into `dir` (PNG and SVG each); returns the files written.
     pub fn plot(&self, store: &Store, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
-        std::fs::create_dir_all(dir).map_err(|source| ReportError::Io {
-            path: dir.into(),
-            source,
-        })?;
+        std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
         let mut files = Vec::new();
-        let x_name = if self.x_name.is_empty() {
-            "condition".to_string()
-        } else {
-            self.x_name.clone()
-        };
+        let x_name = if self.x_name.is_empty() { "condition".to_string() } else { self.x_name.clone() };
         let tasks: Vec<String> = {
             let mut t: Vec<String> = self.points.iter().map(|p| p.task.clone()).collect();
             t.dedup();
@@ -480,11 +422,8 @@ impl Report {
         };
         // Learning curves: median and IQR of task % per step, per x level (and series).
         let kept: HashMap<i64, &StoredTrial> = {
-            let keys: std::collections::HashSet<(String, String, u64)> = self
-                .points
-                .iter()
-                .map(|p| (p.task.clone(), p.condition.clone(), p.seed))
-                .collect();
+            let keys: std::collections::HashSet<(String, String, u64)> =
+                self.points.iter().map(|p| (p.task.clone(), p.condition.clone(), p.seed)).collect();
             self.trials
                 .iter()
                 .filter(|t| keys.contains(&(t.task.clone(), t.condition.clone(), t.seed)))
@@ -495,12 +434,7 @@ impl Report {
         let mut acc: BTreeMap<Key, BTreeMap<u64, Vec<f64>>> = BTreeMap::new();
         store.for_each_task_pct(|id, step, v| {
             if let Some(t) = kept.get(&id) {
-                let key = (
-                    t.task.clone(),
-                    t.series.clone(),
-                    order_bits(t.x),
-                    t.x_label.clone(),
-                );
+                let key = (t.task.clone(), t.series.clone(), order_bits(t.x), t.x_label.clone());
                 acc.entry(key).or_default().entry(step).or_default().push(v);
             }
         })?;
@@ -531,10 +465,7 @@ impl Report {
             let (stem, title) = if series.is_empty() {
                 (
                     format!("curves-{task}"),
-                    format!(
-                        "{} ({task}): task % over time by {x_name} (median, IQR band)",
-                        self.name
-                    ),
+                    format!("{} ({task}): task % over time by {x_name} (median, IQR band)", self.name),
                 )
             } else {
                 (
@@ -545,59 +476,33 @@ impl Report {
                     ),
                 )
             };
-            files.extend(plot::learning_curves(
-                &dir.join(stem),
-                &title,
-                curves,
-                self.threshold,
-            )?);
+            files.extend(plot::learning_curves(&dir.join(stem), &title, curves, self.threshold)?);
         }
         for task in &tasks {
             let pts: Vec<&Point> = self.points.iter().filter(|p| &p.task == task).collect();
-            let mut ticks: Vec<(f64, String)> =
-                pts.iter().map(|p| (p.x_pos, p.x_label.clone())).collect();
+            let mut ticks: Vec<(f64, String)> = pts.iter().map(|p| (p.x_pos, p.x_label.clone())).collect();
             ticks.dedup();
             let fit = |m: &str| self.fits.iter().find(|f| &f.task == task && f.metric == m);
-            let panel =
-                |m: &'static str, y: &dyn Fn(&Point) -> f64, y_label: String| ScatterPanel {
-                    title: match fit(m)
-                        .and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?)))
-                    {
-                        Some((a, b)) => format!("{m}: least squares {a:.3}·level + {b:.2}"),
-                        None => format!("{m}: no fitted line (one level)"),
-                    },
-                    y_label,
-                    points: pts.iter().map(|p| (p.x_pos, y(p))).collect(),
-                    fit: fit(m)
-                        .and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?))),
-                    ticks: ticks.clone(),
-                };
+            let panel = |m: &'static str, y: &dyn Fn(&Point) -> f64, y_label: String| ScatterPanel {
+                title: match fit(m).and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?))) {
+                    Some((a, b)) => format!("{m}: least squares {a:.3}·level + {b:.2}"),
+                    None => format!("{m}: no fitted line (one level)"),
+                },
+                y_label,
+                points: pts.iter().map(|p| (p.x_pos, y(p))).collect(),
+                fit: fit(m).and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?))),
+                ticks: ticks.clone(),
+            };
             let panels = [
                 panel(
                     "power",
                     &|p| p.power,
-                    format!(
-                        "power ({})",
-                        if self.power == PowerVariant::Paper {
-                            "paper"
-                        } else {
-                            "code"
-                        }
-                    ),
+                    format!("power ({})", if self.power == PowerVariant::Paper { "paper" } else { "code" }),
                 ),
-                panel(
-                    "efficiency",
-                    &|p| p.efficiency,
-                    format!("efficiency ({})", self.efficiency.name()),
-                ),
+                panel("efficiency", &|p| p.efficiency, format!("efficiency ({})", self.efficiency.name())),
             ];
             let title = format!("{} ({task}): power and efficiency vs {x_name}", self.name);
-            files.extend(plot::scatter(
-                &dir.join(format!("resilience-{task}")),
-                &title,
-                &panels,
-                &x_name,
-            )?);
+            files.extend(plot::scatter(&dir.join(format!("resilience-{task}")), &title, &panels, &x_name)?);
             // Box plots of the final task % per x level, grouped by series.
             let mut series: Vec<String> = pts.iter().map(|p| p.series.clone()).collect();
             series.sort_by(|a, b| match (a.parse::<f64>(), b.parse::<f64>()) {
@@ -616,29 +521,14 @@ impl Report {
                             .collect::<Vec<_>>()
                     })
                     .collect();
-                groups.push(BoxGroup {
-                    label: label.clone(),
-                    boxes,
-                });
+                groups.push(BoxGroup { label: label.clone(), boxes });
             }
             let series_labels: Vec<String> = series
                 .iter()
-                .map(|s| {
-                    if s.is_empty() {
-                        String::new()
-                    } else {
-                        format!("{} = {s}", self.series_name)
-                    }
-                })
+                .map(|s| if s.is_empty() { String::new() } else { format!("{} = {s}", self.series_name) })
                 .collect();
             let title = format!("{} ({task}): final task % by {x_name}", self.name);
-            files.extend(plot::boxes(
-                &dir.join(format!("final-{task}")),
-                &title,
-                &groups,
-                &series_labels,
-                &x_name,
-            )?);
+            files.extend(plot::boxes(&dir.join(format!("final-{task}")), &title, &groups, &series_labels, &x_name)?);
         }
         Ok(files)
     }
@@ -655,21 +545,10 @@ fn order_bits(x: f64) -> u64 {
 }
 
 fn sanitize(s: &str) -> String {
-    s.chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
+    s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' || c == '-' { c } else { '_' }).collect()
 }
 
 fn write_file(path: &Path, text: &str) -> Result<PathBuf, ReportError> {
-    std::fs::write(path, text).map_err(|source| ReportError::Io {
-        path: path.into(),
-        source,
-    })?;
+    std::fs::write(path, text).map_err(|source| ReportError::Io { path: path.into(), source })?;
     Ok(path.into())
 }

@@ -80,33 +80,18 @@ CREATE TABLE IF NOT EXISTS steps (
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     #[error("results database {path}: {source}")]
-    Sql {
-        path: PathBuf,
-        source: rusqlite::Error,
-    },
+    Sql { path: PathBuf, source: rusqlite::Error },
     #[error("results database {0} does not exist")]
     Missing(PathBuf),
     #[error("results database {path} holds campaign '{stored}', not '{wanted}': use another --db or remove the file")]
-    OtherCampaign {
-        path: PathBuf,
-        stored: String,
-        wanted: String,
-    },
+    OtherCampaign { path: PathBuf, stored: String, wanted: String },
     #[error(
         "results database {path}: trial '{condition}' task {task} seed {seed} was stored with another \
          configuration than the campaign file now gives; use another --db, or restore the file"
     )]
-    ConfigChanged {
-        path: PathBuf,
-        condition: String,
-        task: String,
-        seed: u64,
-    },
+    ConfigChanged { path: PathBuf, condition: String, task: String, seed: u64 },
     #[error("cannot write {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
 }
 
 /// Key and configuration of a trial, known before it runs.
@@ -173,36 +158,21 @@ pub struct Store {
 }
 
 fn now_unix() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs() as i64)
-        .unwrap_or(0)
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0)
 }
 
 impl Store {
     fn sql<T>(&self, r: rusqlite::Result<T>) -> Result<T, StoreError> {
-        r.map_err(|source| StoreError::Sql {
-            path: self.path.clone(),
-            source,
-        })
+        r.map_err(|source| StoreError::Sql { path: self.path.clone(), source })
     }
 
     /// Open (creating if needed) a database for writing.
     pub fn create(path: &Path) -> Result<Store, StoreError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
-                path: dir.into(),
-                source,
-            })?;
+            std::fs::create_dir_all(dir).map_err(|source| StoreError::Io { path: dir.into(), source })?;
         }
-        let conn = Connection::open(path).map_err(|source| StoreError::Sql {
-            path: path.into(),
-            source,
-        })?;
-        let s = Store {
-            conn,
-            path: path.into(),
-        };
+        let conn = Connection::open(path).map_err(|source| StoreError::Sql { path: path.into(), source })?;
+        let s = Store { conn, path: path.into() };
         s.sql(s.conn.busy_timeout(std::time::Duration::from_secs(30)))?;
         s.sql(s.conn.pragma_update(None, "journal_mode", "WAL"))?;
         s.sql(s.conn.pragma_update(None, "synchronous", "NORMAL"))?;
@@ -215,18 +185,10 @@ impl Store {
         if !path.exists() {
             return Err(StoreError::Missing(path.into()));
         }
-        let conn = Connection::open_with_flags(
-            path,
-            OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX,
-        )
-        .map_err(|source| StoreError::Sql {
-            path: path.into(),
-            source,
-        })?;
-        let s = Store {
-            conn,
-            path: path.into(),
-        };
+        let conn =
+            Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX)
+                .map_err(|source| StoreError::Sql { path: path.into(), source })?;
+        let s = Store { conn, path: path.into() };
         s.sql(s.conn.busy_timeout(std::time::Duration::from_secs(30)))?;
         s.sql(s.conn.execute_batch(SCHEMA))?;
         Ok(s)
@@ -238,22 +200,14 @@ impl Store {
 
     /// A manifest value.
     pub fn meta(&self, key: &str) -> Result<Option<String>, StoreError> {
-        self.sql(
-            self.conn
-                .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0))
-                .optional(),
-        )
+        self.sql(self.conn.query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0)).optional())
     }
 
     /// Record the campaign's manifest and start a session (one `geese campaign` call).
     pub fn begin_session(&mut self, c: &Campaign) -> Result<i64, StoreError> {
         if let Some(stored) = self.meta("name")? {
             if stored != c.name {
-                return Err(StoreError::OtherCampaign {
-                    path: self.path.clone(),
-                    stored,
-                    wanted: c.name.clone(),
-                });
+                return Err(StoreError::OtherCampaign { path: self.path.clone(), stored, wanted: c.name.clone() });
             }
         }
         let versions = serde_json::to_string(&versions()).unwrap_or_default();
@@ -275,19 +229,9 @@ impl Store {
                 },
             ),
             ("series", c.series.map(|k| k.name().to_string()).unwrap_or_default()),
-            (
-                "code_efficiency",
-                c.file.code_efficiency.map(|v| v.name().to_string()).unwrap_or_default(),
-            ),
+            ("code_efficiency", c.file.code_efficiency.map(|v| v.name().to_string()).unwrap_or_default()),
             ("threshold", c.file.base.threshold.to_string()),
-            (
-                "seeds",
-                format!(
-                    "{}..={}",
-                    c.file.first_seed,
-                    c.file.first_seed + c.file.seeds as u64 - 1
-                ),
-            ),
+            ("seeds", format!("{}..={}", c.file.first_seed, c.file.first_seed + c.file.seeds as u64 - 1)),
             (
                 "seed_derivation",
                 "each stream seeded with proto::seed::derive(trial seed, owner, purpose) into ChaCha8".into(),
@@ -295,42 +239,27 @@ impl Store {
             ("versions", versions.clone()),
         ];
         let path = self.path.clone();
-        let tx = self
-            .conn
-            .transaction()
-            .map_err(|source| StoreError::Sql { path, source })?;
+        let tx = self.conn.transaction().map_err(|source| StoreError::Sql { path, source })?;
         for (k, v) in entries {
             tx.execute(
                 "INSERT INTO meta (key, value) VALUES (?1, ?2) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
                 params![k, v],
             )
-            .map_err(|source| StoreError::Sql {
-                path: self.path.clone(),
-                source,
-            })?;
+            .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         }
         tx.execute(
             "INSERT OR IGNORE INTO meta (key, value) VALUES ('created_unix', ?1)",
             params![now_unix().to_string()],
         )
-        .map_err(|source| StoreError::Sql {
-            path: self.path.clone(),
-            source,
-        })?;
+        .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         let command = std::env::args().collect::<Vec<_>>().join(" ");
         tx.execute(
             "INSERT INTO sessions (started_unix, command, versions, campaign_digest) VALUES (?1, ?2, ?3, ?4)",
             params![now_unix(), command, versions, c.digest()],
         )
-        .map_err(|source| StoreError::Sql {
-            path: self.path.clone(),
-            source,
-        })?;
+        .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         let id = tx.last_insert_rowid();
-        tx.commit().map_err(|source| StoreError::Sql {
-            path: self.path.clone(),
-            source,
-        })?;
+        tx.commit().map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         Ok(id)
     }
 
@@ -368,10 +297,7 @@ impl Store {
     /// Delete a stored trial and its steps (before retrying a failed one).
     pub fn remove(&mut self, rec: &TrialRecord) -> Result<(), StoreError> {
         let path = self.path.clone();
-        let e = |source| StoreError::Sql {
-            path: path.clone(),
-            source,
-        };
+        let e = |source| StoreError::Sql { path: path.clone(), source };
         let tx = self.conn.transaction().map_err(e)?;
         tx.execute(
             "DELETE FROM steps WHERE trial IN (SELECT id FROM trials WHERE condition = ?1 AND task = ?2 AND seed = ?3)",
@@ -395,10 +321,7 @@ impl Store {
         transport: &str,
     ) -> Result<(), StoreError> {
         let path = self.path.clone();
-        let e = |source| StoreError::Sql {
-            path: path.clone(),
-            source,
-        };
+        let e = |source| StoreError::Sql { path: path.clone(), source };
         let tx = self.conn.transaction().map_err(e)?;
         let done = r.error.is_none();
         let o = &r.outcome;
@@ -525,13 +448,7 @@ impl Store {
         ))?;
         let mut rows = self.sql(st.query([]))?;
         while let Some(r) = self.sql(rows.next())? {
-            let (a, b, c) = self.sql((|| {
-                Ok((
-                    r.get::<_, i64>(0)?,
-                    r.get::<_, i64>(1)?,
-                    r.get::<_, f64>(2)?,
-                ))
-            })())?;
+            let (a, b, c) = self.sql((|| Ok((r.get::<_, i64>(0)?, r.get::<_, i64>(1)?, r.get::<_, f64>(2)?)))())?;
             f(a, b as u64, c);
         }
         Ok(())
@@ -562,21 +479,14 @@ impl Store {
 
     /// Number of stored step rows of a trial.
     pub fn step_count(&self, trial: i64) -> Result<u64, StoreError> {
-        self.sql(self.conn.query_row(
-            "SELECT COUNT(*) FROM steps WHERE trial = ?1",
-            [trial],
-            |r| r.get::<_, i64>(0),
-        ))
-        .map(|n| n as u64)
+        self.sql(self.conn.query_row("SELECT COUNT(*) FROM steps WHERE trial = ?1", [trial], |r| r.get::<_, i64>(0)))
+            .map(|n| n as u64)
     }
 
     /// Export the database to CSV files in `dir`: `trials.csv`, `steps.csv`,
     /// `sessions.csv` and `manifest.json` (the meta table). Returns the files written.
     pub fn export_csv(&self, dir: &Path) -> Result<Vec<PathBuf>, StoreError> {
-        std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
-            path: dir.into(),
-            source,
-        })?;
+        std::fs::create_dir_all(dir).map_err(|source| StoreError::Io { path: dir.into(), source })?;
         let mut written = Vec::new();
         let exports = [
             (
@@ -600,13 +510,9 @@ impl Store {
             self.query_to_csv(query, &path)?;
             written.push(path);
         }
-        let mut st = self.sql(
-            self.conn
-                .prepare("SELECT key, value FROM meta ORDER BY key"),
-        )?;
+        let mut st = self.sql(self.conn.prepare("SELECT key, value FROM meta ORDER BY key"))?;
         let mut m = serde_json::Map::new();
-        let rows =
-            self.sql(st.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, String>(1)?))))?;
+        let rows = self.sql(st.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, String>(1)?))))?;
         for r in rows {
             let (k, v) = self.sql(r)?;
             let value = if matches!(k.as_str(), "versions" | "conditions") {
@@ -618,19 +524,13 @@ impl Store {
         }
         let path = dir.join("manifest.json");
         let text = serde_json::to_string_pretty(&serde_json::Value::Object(m)).unwrap_or_default();
-        std::fs::write(&path, text).map_err(|source| StoreError::Io {
-            path: path.clone(),
-            source,
-        })?;
+        std::fs::write(&path, text).map_err(|source| StoreError::Io { path: path.clone(), source })?;
         written.push(path);
         Ok(written)
     }
 
     fn query_to_csv(&self, query: &str, path: &Path) -> Result<(), StoreError> {
-        let io = |source| StoreError::Io {
-            path: path.into(),
-            source,
-        };
+        let io = |source| StoreError::Io { path: path.into(), source };
         let mut out = std::io::BufWriter::new(std::fs::File::create(path).map_err(io)?);
         let mut st = self.sql(self.conn.prepare(query))?;
         let names: Vec<String> = st.column_names().iter().map(|s| s.to_string()).collect();
@@ -649,9 +549,7 @@ impl Store {
                     rusqlite::types::ValueRef::Null => {}
                     rusqlite::types::ValueRef::Integer(x) => line.push_str(&x.to_string()),
                     rusqlite::types::ValueRef::Real(x) => line.push_str(&x.to_string()),
-                    rusqlite::types::ValueRef::Text(t) => {
-                        line.push_str(&csv_field(&String::from_utf8_lossy(t)))
-                    }
+                    rusqlite::types::ValueRef::Text(t) => line.push_str(&csv_field(&String::from_utf8_lossy(t))),
                     rusqlite::types::ValueRef::Blob(_) => line.push_str("<blob>"),
                 }
             }

@@ -124,12 +124,7 @@ impl Geometry {
         let (cl, ch) = ((c0 - s).max(0), (c0 + s).min(self.cols() - 1));
         let (rl, rh) = ((r0 - s).max(0), (r0 + s).min(self.rows() - 1));
         let g = self.grid;
-        (
-            cl * g - self.half_w(),
-            rl * g - self.half_h(),
-            (ch + 1) * g - self.half_w(),
-            (rh + 1) * g - self.half_h(),
-        )
+        (cl * g - self.half_w(), rl * g - self.half_h(), (ch + 1) * g - self.half_w(), (rh + 1) * g - self.half_h())
     }
 
     /// Border rule of REFERENCE §1.1 applied to a proposed position: an overshooting axis

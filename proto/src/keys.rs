@@ -75,10 +75,7 @@ impl AgentRange {
             s.parse().ok()
         };
         match chunk.split_once('-') {
-            None => num(chunk).map(|id| AgentRange {
-                first: id,
-                last: id,
-            }),
+            None => num(chunk).map(|id| AgentRange { first: id, last: id }),
             Some((a, b)) => {
                 let (first, last) = (num(a)?, num(b)?);
                 (first < last).then_some(AgentRange { first, last })
@@ -99,11 +96,7 @@ impl std::fmt::Display for AgentRange {
 
 /// A run name is one key chunk of letters, digits, `_`, `-` and `.`.
 pub fn valid_run_name(run: &str) -> bool {
-    !run.is_empty()
-        && run.len() <= 64
-        && run
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
+    !run.is_empty() && run.len() <= 64 && run.bytes().all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
 }
 
 /// Genes published in cell (cx, cy) by the agent process speaking for `from` (the
@@ -194,10 +187,7 @@ pub enum Parsed {
 
 /// Parse a key expression of run `run`; anything unexpected is [`Parsed::Other`].
 pub fn parse(run: &str, key: &str) -> Parsed {
-    let Some(rest) = key
-        .strip_prefix("geese/")
-        .and_then(|k| k.strip_prefix(run))
-        .and_then(|k| k.strip_prefix('/'))
+    let Some(rest) = key.strip_prefix("geese/").and_then(|k| k.strip_prefix(run)).and_then(|k| k.strip_prefix('/'))
     else {
         return Parsed::Other;
     };
@@ -218,11 +208,7 @@ pub fn parse(run: &str, key: &str) -> Parsed {
             _ => Parsed::Other,
         },
         ["cell", cx, cy, "genes", from] => match (coord(cx), coord(cy), AgentRange::parse(from)) {
-            (Some(cx), Some(cy), Some(from)) => Parsed::Genes {
-                cx,
-                cy,
-                from: Some(from),
-            },
+            (Some(cx), Some(cy), Some(from)) => Parsed::Genes { cx, cy, from: Some(from) },
             _ => Parsed::Other,
         },
         ["agent", from, "action"] => match AgentRange::parse(from) {
@@ -262,38 +248,18 @@ mod tests {
             assert_eq!(AgentRange::parse(bad), None, "{bad}");
         }
         assert_eq!(super::agents_action("r", one), super::agent_action("r", 7));
-        assert_eq!(
-            parse("r", &super::cell_percept("r", 3, 4)),
-            Parsed::Percept { cx: 3, cy: 4 }
-        );
+        assert_eq!(parse("r", &super::cell_percept("r", 3, 4)), Parsed::Percept { cx: 3, cy: 4 });
         assert_eq!(
             parse("r", &super::cell_genes_from("r", 3, 4, many)),
-            Parsed::Genes {
-                cx: 3,
-                cy: 4,
-                from: Some(many)
-            }
+            Parsed::Genes { cx: 3, cy: 4, from: Some(many) }
         );
-        assert_eq!(
-            parse("r", &super::agents_action("r", many)),
-            Parsed::Action { from: many }
-        );
-        assert_eq!(
-            parse("r", &super::agents_presence("r", one)),
-            Parsed::AgentsPresence { agents: one }
-        );
-        assert_eq!(
-            parse("r", &super::world_presence("r")),
-            Parsed::WorldPresence
-        );
+        assert_eq!(parse("r", &super::agents_action("r", many)), Parsed::Action { from: many });
+        assert_eq!(parse("r", &super::agents_presence("r", one)), Parsed::AgentsPresence { agents: one });
+        assert_eq!(parse("r", &super::world_presence("r")), Parsed::WorldPresence);
         assert_eq!(parse("r", "geese/other/agent/1/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/agent/x/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/cell/-1/2/percept"), Parsed::Other);
         assert!(super::valid_run_name("geese-1.a_b"));
-        assert!(
-            !super::valid_run_name("a/b")
-                && !super::valid_run_name("*")
-                && !super::valid_run_name("")
-        );
+        assert!(!super::valid_run_name("a/b") && !super::valid_run_name("*") && !super::valid_run_name(""));
     }
 }

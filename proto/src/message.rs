@@ -216,14 +216,20 @@ pub enum Control {
     Start,
     Stop,
     /// Apply at the start of `at_step` (world side; propagated in percepts).
-    Schedule { at_step: u64, change: Perturbation },
+    Schedule {
+        at_step: u64,
+        change: Perturbation,
+    },
 }
 
 /// A run-time change of the world or the swarm (REFERENCE §8.4, §8.6).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Perturbation {
     /// Add `count` obstacles of `radius` by the obstacle placement rule; they stay.
-    AddObstacles { count: u32, radius: i32 },
+    AddObstacles {
+        count: u32,
+        radius: i32,
+    },
     SetIp(f64),
     SetLateralTransfer(bool),
     SetGeneLoss(f64),

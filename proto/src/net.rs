@@ -60,12 +60,7 @@ pub struct Deadlines {
 
 impl Default for Deadlines {
     fn default() -> Self {
-        Deadlines {
-            intent_ms: 5_000,
-            gene_ms: 3_000,
-            percept_ms: 1_000,
-            join_ms: 120_000,
-        }
+        Deadlines { intent_ms: 5_000, gene_ms: 3_000, percept_ms: 1_000, join_ms: 120_000 }
     }
 }
 
@@ -215,9 +210,7 @@ mod tests {
     #[test]
     fn loss_draws_are_uniform_and_stable() {
         let n = 20_000;
-        let below = (0..n)
-            .filter(|&i| loss_draw(7, i / 100, i % 100) < 0.25)
-            .count();
+        let below = (0..n).filter(|&i| loss_draw(7, i / 100, i % 100) < 0.25).count();
         assert!((4_500..5_500).contains(&below), "{below}");
         assert_eq!(loss_draw(1, 2, 3), loss_draw(1, 2, 3));
         assert_ne!(loss_draw(1, 2, 3), loss_draw(1, 2, 4));
@@ -226,22 +219,11 @@ mod tests {
 
     #[test]
     fn net_messages_round_trip() {
-        let t = Tick {
-            step: 4,
-            cells: vec![1, NO_CELL, 99],
-        };
+        let t = Tick { step: 4, cells: vec![1, NO_CELL, 99] };
         assert_eq!(decode::<Tick>(&encode(&t).unwrap()).unwrap(), t);
-        let b = IntentBatch {
-            step: 2,
-            intents: vec![],
-            idle: vec![3],
-            counters: HostCounters::default(),
-        };
+        let b = IntentBatch { step: 2, intents: vec![], idle: vec![3], counters: HostCounters::default() };
         assert_eq!(decode::<IntentBatch>(&encode(&b).unwrap()).unwrap(), b);
-        let r = ReportMsg::Done {
-            steps: 5,
-            completed: true,
-        };
+        let r = ReportMsg::Done { steps: 5, completed: true };
         assert_eq!(decode::<ReportMsg>(&encode(&r).unwrap()).unwrap(), r);
     }
 }

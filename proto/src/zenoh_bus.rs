@@ -123,11 +123,7 @@ impl CommonArgs {
     fn mode(&self, role: Role) -> Option<Mode> {
         match (self.mode, &self.zenoh_config) {
             (Some(m), _) => Some(m),
-            (None, None) => Some(if self.own_router(role) {
-                Mode::Router
-            } else {
-                Mode::Client
-            }),
+            (None, None) => Some(if self.own_router(role) { Mode::Router } else { Mode::Client }),
             // A configuration file decides the mode unless a flag does.
             (None, Some(_)) => None,
         }
@@ -145,8 +141,7 @@ impl CommonArgs {
 
     fn config_listening(&self, role: Role, listen: &[String]) -> Result<Config, BusError> {
         let mut c = match &self.zenoh_config {
-            Some(p) => Config::from_file(p)
-                .map_err(|e| BusError::Config(format!("{}: {e}", p.display())))?,
+            Some(p) => Config::from_file(p).map_err(|e| BusError::Config(format!("{}: {e}", p.display())))?,
             None => Config::default(),
         };
         let mode = self.mode(role);
@@ -174,35 +169,27 @@ impl CommonArgs {
             set(&mut c, "transport/unicast/accept_pending", "10000")?;
         }
         for pair in &self.cfg {
-            let (k, v) = pair
-                .split_once(':')
-                .ok_or_else(|| BusError::CfgPair(pair.clone()))?;
-            c.insert_json5(k, v)
-                .map_err(|e| BusError::Config(format!("--cfg {pair}: {e}")))?;
+            let (k, v) = pair.split_once(':').ok_or_else(|| BusError::CfgPair(pair.clone()))?;
+            c.insert_json5(k, v).map_err(|e| BusError::Config(format!("--cfg {pair}: {e}")))?;
         }
         Ok(c)
     }
 }
 
 fn set(c: &mut Config, key: &str, value: &str) -> Result<(), BusError> {
-    c.insert_json5(key, value)
-        .map_err(|e| BusError::Config(format!("{key}: {e}")))
+    c.insert_json5(key, value).map_err(|e| BusError::Config(format!("{key}: {e}")))
 }
 
 fn json_list(v: &[String]) -> String {
-    let items: Vec<String> = v
-        .iter()
-        .map(|s| format!("\"{}\"", s.replace('\\', "\\\\").replace('"', "\\\"")))
-        .collect();
+    let items: Vec<String> =
+        v.iter().map(|s| format!("\"{}\"", s.replace('\\', "\\\\").replace('"', "\\\""))).collect();
     format!("[{}]", items.join(","))
 }
 
 /// Open a session of `role` configured by `args`.
 pub async fn open(args: &CommonArgs, role: Role) -> Result<Session, BusError> {
     let cfg = args.config(role)?;
-    zenoh::open(cfg)
-        .await
-        .map_err(|e| BusError::Open(e.to_string()))
+    zenoh::open(cfg).await.map_err(|e| BusError::Open(e.to_string()))
 }
 
 /// Open the world server's session and return it with the locators others must
@@ -214,14 +201,10 @@ pub async fn open_world(args: &CommonArgs) -> Result<(Session, Vec<String>), Bus
     for _ in 0..8 {
         let listen: Vec<String> = wanted
             .iter()
-            .map(
-                |e| match e.strip_suffix(":0").and_then(|h| h.strip_prefix("tcp/")) {
-                    Some(host) => free_port(host)
-                        .map(|p| format!("tcp/{host}:{p}"))
-                        .unwrap_or_else(|| e.clone()),
-                    None => e.clone(),
-                },
-            )
+            .map(|e| match e.strip_suffix(":0").and_then(|h| h.strip_prefix("tcp/")) {
+                Some(host) => free_port(host).map(|p| format!("tcp/{host}:{p}")).unwrap_or_else(|| e.clone()),
+                None => e.clone(),
+            })
             .collect();
         let cfg = args.config_listening(Role::World, &listen)?;
         match zenoh::open(cfg).await {
@@ -243,8 +226,7 @@ pub async fn open_world(args: &CommonArgs) -> Result<(Session, Vec<String>), Bus
 
 /// A TCP port of `host` that is free now.
 fn free_port(host: &str) -> Option<u16> {
-    let l = std::net::TcpListener::bind((host.trim_start_matches('[').trim_end_matches(']'), 0))
-        .ok()?;
+    let l = std::net::TcpListener::bind((host.trim_start_matches('[').trim_end_matches(']'), 0)).ok()?;
     l.local_addr().ok().map(|a| a.port())
 }
 
@@ -271,10 +253,7 @@ pub const LEAN_ZENOH_RUNTIME: &str =
 
 /// A Tokio multi-thread runtime (Zenoh requires one) with `workers` worker threads.
 pub fn runtime(workers: usize) -> std::io::Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(workers.max(1))
-        .enable_all()
-        .build()
+    tokio::runtime::Builder::new_multi_thread().worker_threads(workers.max(1)).enable_all().build()
 }
 
 #[cfg(test)]
@@ -286,54 +265,24 @@ mod tests {
         let a = CommonArgs::default();
         let w = a.config(Role::World).unwrap();
         assert_eq!(w.get_json("mode").unwrap(), "\"router\"");
-        assert!(w
-            .get_json("listen/endpoints")
-            .unwrap()
-            .contains("tcp/127.0.0.1:0"));
+        assert!(w.get_json("listen/endpoints").unwrap().contains("tcp/127.0.0.1:0"));
         assert_eq!(w.get_json("scouting/multicast/enabled").unwrap(), "false");
         assert_eq!(w.get_json("scouting/gossip/enabled").unwrap(), "false");
-        let c = CommonArgs {
-            connect: vec!["tcp/127.0.0.1:7447".into()],
-            ..Default::default()
-        }
-        .config(Role::Client)
-        .unwrap();
+        let c = CommonArgs { connect: vec!["tcp/127.0.0.1:7447".into()], ..Default::default() }
+            .config(Role::Client)
+            .unwrap();
         assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
-        assert!(c
-            .get_json("connect/endpoints")
-            .unwrap()
-            .contains("tcp/127.0.0.1:7447"));
-        let r = CommonArgs {
-            router: Some("tcp/127.0.0.1:7447".into()),
-            ..Default::default()
-        };
-        assert_eq!(
-            r.config(Role::World).unwrap().get_json("mode").unwrap(),
-            "\"client\""
-        );
+        assert!(c.get_json("connect/endpoints").unwrap().contains("tcp/127.0.0.1:7447"));
+        let r = CommonArgs { router: Some("tcp/127.0.0.1:7447".into()), ..Default::default() };
+        assert_eq!(r.config(Role::World).unwrap().get_json("mode").unwrap(), "\"client\"");
     }
 
     #[test]
     fn cfg_pairs_apply_last_and_bad_pairs_are_errors() {
-        let a = CommonArgs {
-            cfg: vec!["transport/unicast/max_sessions:42".into()],
-            ..Default::default()
-        };
-        assert_eq!(
-            a.config(Role::World)
-                .unwrap()
-                .get_json("transport/unicast/max_sessions")
-                .unwrap(),
-            "42"
-        );
-        let bad = CommonArgs {
-            cfg: vec!["nocolon".into()],
-            ..Default::default()
-        };
-        assert!(matches!(
-            bad.config(Role::Client),
-            Err(BusError::CfgPair(_))
-        ));
+        let a = CommonArgs { cfg: vec!["transport/unicast/max_sessions:42".into()], ..Default::default() };
+        assert_eq!(a.config(Role::World).unwrap().get_json("transport/unicast/max_sessions").unwrap(), "42");
+        let bad = CommonArgs { cfg: vec!["nocolon".into()], ..Default::default() };
+        assert!(matches!(bad.config(Role::Client), Err(BusError::CfgPair(_))));
         let round = CommonArgs {
             connect: vec!["tcp/127.0.0.1:1".into()],
             router: Some("tcp/127.0.0.1:2".into()),

@@ -142,9 +142,7 @@ impl WorldConfig {
         if self.boundaries == 0 || self.boundaries > 36 {
             return Err(bad("boundaries", "must be between 1 and 36"));
         }
-        if self.boundary_distance <= 0
-            || self.boundary_distance >= geom.half_w().min(geom.half_h())
-        {
+        if self.boundary_distance <= 0 || self.boundary_distance >= geom.half_w().min(geom.half_h()) {
             return Err(bad("boundary_distance", "must be positive and inside the arena"));
         }
         if self.obstacle_radius <= 0 {

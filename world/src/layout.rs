@@ -100,10 +100,9 @@ pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigErr
     for _ in 0..cfg.agents {
         let pos = match cfg.start() {
             Start::Hub => hub_pos,
-            Start::Random => Pos::new(
-                rng.random_range(-g.half_w()..g.half_w()),
-                rng.random_range(-g.half_h()..g.half_h()),
-            ),
+            Start::Random => {
+                Pos::new(rng.random_range(-g.half_w()..g.half_w()), rng.random_range(-g.half_h()..g.half_h()))
+            }
         };
         let heading = rng.random::<f64>() * std::f64::consts::TAU;
         w.add_body(pos, heading);

@@ -4,8 +4,8 @@ use crate::config::{ConfigError, Task, WorldConfig};
 use geese_proto::geometry::step_destination;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
-    AgentId, AgentPublic, CellIdx, Geometry, GeneticTrigger, Intent, ObjectId, ObjectInfo,
-    ObjectKind, Op, Perturbation, Percept, Pos, Regime, StepReport,
+    AgentId, AgentPublic, CellIdx, GeneticTrigger, Geometry, Intent, ObjectId, ObjectInfo, ObjectKind, Op, Percept,
+    Perturbation, Pos, Regime, StepReport,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -227,8 +227,7 @@ impl World {
     /// The percepts of step `self.step`, one per cell holding a live agent's centre,
     /// in cell order.
     pub fn percepts(&self) -> Vec<Percept> {
-        let mut cells: Vec<CellIdx> =
-            self.bodies.iter().filter(|b| b.live).map(|b| self.geom.cell_of(b.pos)).collect();
+        let mut cells: Vec<CellIdx> = self.bodies.iter().filter(|b| b.live).map(|b| self.geom.cell_of(b.pos)).collect();
         cells.sort_unstable();
         cells.dedup();
         cells.into_iter().map(|c| self.percept(c)).collect()
@@ -379,8 +378,7 @@ impl World {
             return Err(Rejection::BadHeading);
         }
         let from = self.bodies[id as usize].pos;
-        let (dest, new_heading) =
-            step_destination(&self.geom, from, heading, speed(self.carried_weight(id)));
+        let (dest, new_heading) = step_destination(&self.geom, from, heading, speed(self.carried_weight(id)));
         if dest != to {
             return Err(Rejection::BadMove { to, heading });
         }
@@ -427,11 +425,7 @@ impl World {
         };
         let o = &self.objects[object as usize];
         // IsSingleCarry: free capacity must exceed the item's weight.
-        let used: i32 = self.bodies[id as usize]
-            .carrying
-            .iter()
-            .map(|&c| self.objects[c as usize].info.capacity)
-            .sum();
+        let used: i32 = self.bodies[id as usize].carrying.iter().map(|&c| self.objects[c as usize].info.capacity).sum();
         if AGENT_CAPACITY - used <= o.info.weight {
             return Err(Rejection::NotCarryable(object));
         }
@@ -538,8 +532,7 @@ impl World {
             Perturbation::SetLateralTransfer(on) => self.regime.lateral_transfer = on,
             Perturbation::SetGeneLoss(p) => self.regime.gene_loss = p.clamp(0.0, 1.0),
             Perturbation::KillFraction(f) => {
-                let mut live: Vec<AgentId> =
-                    self.bodies.iter().filter(|b| b.live).map(|b| b.id).collect();
+                let mut live: Vec<AgentId> = self.bodies.iter().filter(|b| b.live).map(|b| b.id).collect();
                 let k = ((f.clamp(0.0, 1.0) * live.len() as f64).floor()) as usize;
                 for i in 0..k {
                     let j = self.perturb_rng.random_range(i..live.len());

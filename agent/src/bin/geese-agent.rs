@@ -28,9 +28,7 @@ use clap::{Parser, ValueEnum};
 use geese_agent::ge::Grammar;
 use geese_agent::{Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
-use geese_proto::net::{
-    loss_draw, GeneBatch, HostCounters, IntentBatch, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
-};
+use geese_proto::net::{loss_draw, GeneBatch, HostCounters, IntentBatch, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL};
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
 use geese_proto::{decode, encode, AgentId, Control, GeneMsg, Geometry, Intent, Op, Percept};
@@ -54,11 +52,7 @@ enum SubscribeArg {
 }
 
 #[derive(Parser)]
-#[command(
-    name = "geese-agent",
-    version,
-    about = "GEESE agent process (Zenoh): one or many agents"
-)]
+#[command(name = "geese-agent", version, about = "GEESE agent process (Zenoh): one or many agents")]
 struct Args {
     #[command(flatten)]
     zenoh: CommonArgs,
@@ -109,16 +103,10 @@ fn main() -> Result<()> {
     // subscription just undeclared (harmless: the cell is no longer needed).
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,zenoh::api::session=off"));
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .init();
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     let args = Args::parse();
     if !keys::valid_run_name(&args.run) {
-        bail!(
-            "--run {:?}: one key chunk of letters, digits, '_', '-', '.'",
-            args.run
-        );
+        bail!("--run {:?}: one key chunk of letters, digits, '_', '-', '.'", args.run);
     }
     let Some(range) = AgentRange::new(args.id, args.agents) else {
         bail!("--agents must be at least 1 and the ids must fit in 32 bits");
@@ -143,21 +131,14 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         .history(true)
         .callback(move |s| {
             let alive = s.kind() == SampleKind::Put;
-            let _ = t.send(Event::Presence {
-                alive,
-                key: s.key_expr().as_str().to_owned(),
-            });
+            let _ = t.send(Event::Presence { alive, key: s.key_expr().as_str().to_owned() });
         })
         .await
         .map_err(zerr)?;
     spawn_signal_watch(tx.clone());
-    let (info, zenoh_rt) =
-        fetch_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
+    let (info, zenoh_rt) = fetch_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
     if range.last >= info.spec.agents {
-        bail!(
-            "agents {range} outside the run's {} agents",
-            info.spec.agents
-        );
+        bail!("agents {range} outside the run's {} agents", info.spec.agents);
     }
     let t = tx.clone();
     let _tick = session
@@ -194,11 +175,7 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         .map_err(zerr)?;
     host.intent_pub = Some(intents);
     // Declared after the subscriptions, so the world sees us only once we can hear it.
-    let token = session
-        .liveliness()
-        .declare_token(keys::agents_presence(&run, range))
-        .await
-        .map_err(zerr)?;
+    let token = session.liveliness().declare_token(keys::agents_presence(&run, range)).await.map_err(zerr)?;
     let work = async move {
         let r = host.run(&mut rx).await;
         drop(host);
@@ -228,10 +205,7 @@ fn spawn_signal_watch(tx: UnboundedSender<Event>) {
         #[cfg(unix)]
         {
             use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut term), Ok(mut int)) = (
-                signal(SignalKind::terminate()),
-                signal(SignalKind::interrupt()),
-            ) else {
+            let (Ok(mut term), Ok(mut int)) = (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) else {
                 return;
             };
             tokio::select! {
@@ -269,9 +243,7 @@ async fn fetch_info(
             })
             .await
             .map_err(zerr)?;
-        if let Ok(Some((bytes, handle))) =
-            tokio::time::timeout(Duration::from_millis(2500), rx.recv()).await
-        {
+        if let Ok(Some((bytes, handle))) = tokio::time::timeout(Duration::from_millis(2500), rx.recv()).await {
             match decode::<RunInfo>(&bytes) {
                 Ok(i) if i.spec.run == run => return Ok((i, handle)),
                 Ok(_) => tracing::warn!("run info of another run ignored"),
@@ -279,11 +251,7 @@ async fn fetch_info(
             }
         }
         if Instant::now() >= deadline {
-            bail!(
-                "no world answered on {} within {} ms",
-                keys::info(run),
-                patience.as_millis()
-            );
+            bail!("no world answered on {} within {} ms", keys::info(run), patience.as_millis());
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
@@ -355,30 +323,18 @@ impl Host {
         let mut learners = Vec::new();
         let mut loss_streams = Vec::new();
         if !info.spec.bare {
-            let cfg: LearnerConfig = serde_json::from_str(&info.spec.learner_json)
-                .context("learner configuration from the world")?;
+            let cfg: LearnerConfig =
+                serde_json::from_str(&info.spec.learner_json).context("learner configuration from the world")?;
             cfg.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
             let grammar = Grammar::parse(&info.spec.grammar_text)
                 .map_err(|e| anyhow::anyhow!("grammar {}: {e}", info.spec.grammar_name))?;
             let (cfg, grammar) = (Arc::new(cfg), Arc::new(grammar));
             for id in range.ids() {
-                learners.push(Learner::new(
-                    id,
-                    cfg.clone(),
-                    grammar.clone(),
-                    geom,
-                    info.hub,
-                    info.spec.seed,
-                ));
-                loss_streams.push(
-                    derive(info.spec.seed, Owner::Agent(id), Purpose::Loss) ^ LOSS_SALT_PERCEPT,
-                );
+                learners.push(Learner::new(id, cfg.clone(), grammar.clone(), geom, info.hub, info.spec.seed));
+                loss_streams.push(derive(info.spec.seed, Owner::Agent(id), Purpose::Loss) ^ LOSS_SALT_PERCEPT);
             }
         }
-        let last_cell = range
-            .ids()
-            .map(|id| info.cells.get(id as usize).copied().unwrap_or(NO_CELL))
-            .collect();
+        let last_cell = range.ids().map(|id| info.cells.get(id as usize).copied().unwrap_or(NO_CELL)).collect();
         Ok(Host {
             session,
             run,
@@ -421,10 +377,7 @@ impl Host {
             return Ok(());
         }
         if self.wide {
-            for key in [
-                keys::all_percepts(&self.run),
-                keys::all_cell_genes(&self.run),
-            ] {
+            for key in [keys::all_percepts(&self.run), keys::all_cell_genes(&self.run)] {
                 let t = self.tx.clone();
                 let run = self.run.clone();
                 let geom = self.geom;
@@ -434,18 +387,11 @@ impl Host {
                     .callback(move |s| {
                         let ev = match keys::parse(&run, s.key_expr().as_str()) {
                             Parsed::Percept { cx, cy } => match cell_index(&geom, cx, cy) {
-                                Some(cell) => Event::Percept {
-                                    cell,
-                                    bytes: s.payload().to_bytes().into_owned(),
-                                },
+                                Some(cell) => Event::Percept { cell, bytes: s.payload().to_bytes().into_owned() },
                                 None => Event::Hostile,
                             },
-                            Parsed::Genes { cx, cy, from: None } => match cell_index(&geom, cx, cy)
-                            {
-                                Some(cell) => Event::Genes {
-                                    cell,
-                                    bytes: s.payload().to_bytes().into_owned(),
-                                },
+                            Parsed::Genes { cx, cy, from: None } => match cell_index(&geom, cx, cy) {
+                                Some(cell) => Event::Genes { cell, bytes: s.payload().to_bytes().into_owned() },
                                 None => Event::Hostile,
                             },
                             _ => Event::Hostile,
@@ -458,12 +404,7 @@ impl Host {
             }
             return Ok(());
         }
-        let cells: Vec<u32> = self
-            .last_cell
-            .iter()
-            .copied()
-            .filter(|&c| c != NO_CELL)
-            .collect();
+        let cells: Vec<u32> = self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect();
         for c in cells {
             self.want(c, self.done + 1).await?;
         }
@@ -482,10 +423,7 @@ impl Host {
             .session
             .declare_subscriber(keys::cell_percept(&self.run, cx, cy))
             .callback(move |s| {
-                let _ = t.send(Event::Percept {
-                    cell,
-                    bytes: s.payload().to_bytes().into_owned(),
-                });
+                let _ = t.send(Event::Percept { cell, bytes: s.payload().to_bytes().into_owned() });
             })
             .await
             .map_err(zerr)?;
@@ -494,29 +432,17 @@ impl Host {
             .session
             .declare_subscriber(keys::cell_genes(&self.run, cx, cy))
             .callback(move |s| {
-                let _ = t.send(Event::Genes {
-                    cell,
-                    bytes: s.payload().to_bytes().into_owned(),
-                });
+                let _ = t.send(Event::Genes { cell, bytes: s.payload().to_bytes().into_owned() });
             })
             .await
             .map_err(zerr)?;
-        self.subs.insert(
-            cell,
-            CellSubs {
-                _percept: percept,
-                _genes: genes,
-                wanted: step,
-            },
-        );
+        self.subs.insert(cell, CellSubs { _percept: percept, _genes: genes, wanted: step });
         Ok(())
     }
 
     /// Every own live agent has been seen in a percept of the step being collected.
     fn all_found(&self) -> bool {
-        self.range
-            .ids()
-            .all(|id| !self.live[self.idx(id)] || self.found.contains_key(&id))
+        self.range.ids().all(|id| !self.live[self.idx(id)] || self.found.contains_key(&id))
     }
 
     async fn run(&mut self, rx: &mut UnboundedReceiver<Event>) -> Result<()> {
@@ -529,9 +455,7 @@ impl Host {
                 continue;
             }
             if self.collecting > self.done {
-                let expired = self
-                    .collect_deadline
-                    .is_some_and(|d| tokio::time::Instant::now() >= d);
+                let expired = self.collect_deadline.is_some_and(|d| tokio::time::Instant::now() >= d);
                 if self.all_found() || expired {
                     self.step(self.collecting, rx).await?;
                     continue;
@@ -591,8 +515,7 @@ impl Host {
                     self.percepts.clear();
                     self.found.clear();
                     self.collect_deadline = Some(
-                        tokio::time::Instant::now()
-                            + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64),
+                        tokio::time::Instant::now() + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64),
                     );
                 }
                 for a in &p.agents {
@@ -606,11 +529,7 @@ impl Host {
                 Ok(b) if b.cell == cell && b.genes.iter().all(|g| g.step == b.step) => {
                     if b.step > self.done {
                         self.heard.insert((b.step, cell));
-                        self.genes.push(Received {
-                            step: b.step,
-                            cell,
-                            batch: b,
-                        });
+                        self.genes.push(Received { step: b.step, cell, batch: b });
                     }
                 }
                 _ => self.counters.hostile += 1,
@@ -686,11 +605,7 @@ impl Host {
 
     async fn step(&mut self, t: u64, rx: &mut UnboundedReceiver<Event>) -> Result<()> {
         let spec_deadlines = self.info.spec.deadlines;
-        let own: Vec<AgentId> = self
-            .range
-            .ids()
-            .filter(|&id| self.live[self.idx(id)])
-            .collect();
+        let own: Vec<AgentId> = self.range.ids().filter(|&id| self.live[self.idx(id)]).collect();
         // 1–2. Percepts, then begin: genes to offer, agents that idle.
         let p_loss = self.info.spec.loss.percept;
         let mut idle: Vec<AgentId> = Vec::new();
@@ -726,9 +641,7 @@ impl Host {
         out_cells.dedup();
         for c in out_cells {
             let outsiders = self.percepts.get(&c).is_some_and(|p| {
-                p.agents
-                    .iter()
-                    .any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
+                p.agents.iter().any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
             });
             if !outsiders {
                 continue;
@@ -759,10 +672,7 @@ impl Host {
                 if self.range.contains(m) {
                     continue;
                 }
-                if p.agents
-                    .iter()
-                    .any(|a| a.id == m && self.geom.cell_of(a.pos) == c)
-                {
+                if p.agents.iter().any(|a| a.id == m && self.geom.cell_of(a.pos) == c) {
                     wait_for.entry(c).or_default().push(m);
                 }
             }
@@ -775,9 +685,7 @@ impl Host {
             // One aggregate per shared cell, sent once every process there has spoken.
             let deadline = Instant::now() + Duration::from_millis(spec_deadlines.gene_ms as u64);
             let satisfied = |h: &Self| {
-                wait_for.iter().all(|(&c, mates)| {
-                    h.heard.contains(&(t, c)) || mates.iter().all(|&m| !h.is_present(m))
-                })
+                wait_for.iter().all(|(&c, mates)| h.heard.contains(&(t, c)) || mates.iter().all(|&m| !h.is_present(m)))
             };
             if !self.wait_until(rx, deadline, satisfied).await {
                 if self.stop {
@@ -801,13 +709,7 @@ impl Host {
                 let mut v = local.get(&c).cloned().unwrap_or_default();
                 for r in &self.genes {
                     if r.step == t && r.cell == c {
-                        v.extend(
-                            r.batch
-                                .genes
-                                .iter()
-                                .filter(|g| !range.contains(g.from))
-                                .cloned(),
-                        );
+                        v.extend(r.batch.genes.iter().filter(|g| !range.contains(g.from)).cloned());
                     }
                 }
                 v
@@ -816,11 +718,8 @@ impl Host {
         }
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
-            let mut next: Vec<u32> = own
-                .iter()
-                .map(|&id| self.last_cell[self.idx(id)])
-                .filter(|&c| c != NO_CELL)
-                .collect();
+            let mut next: Vec<u32> =
+                own.iter().map(|&id| self.last_cell[self.idx(id)]).filter(|&c| c != NO_CELL).collect();
             for i in &intents {
                 for op in &i.ops {
                     if let Op::Move { to, .. } = op {
@@ -835,12 +734,7 @@ impl Host {
             }
             self.subs.retain(|_, s| s.wanted + KEEP_STEPS > t);
         }
-        let batch = IntentBatch {
-            step: t,
-            intents,
-            idle,
-            counters: std::mem::take(&mut self.counters),
-        };
+        let batch = IntentBatch { step: t, intents, idle, counters: std::mem::take(&mut self.counters) };
         self.publish_intents(batch).await?;
         self.done = t;
         self.collect_deadline = None;
@@ -858,6 +752,5 @@ impl Host {
 }
 
 fn cell_index(geom: &Geometry, cx: i32, cy: i32) -> Option<u32> {
-    (cx >= 0 && cy >= 0 && cx < geom.cols() && cy < geom.rows())
-        .then(|| (cy * geom.cols() + cx) as u32)
+    (cx >= 0 && cy >= 0 && cx < geom.cols() && cy < geom.rows()).then(|| (cy * geom.cols() + cx) as u32)
 }

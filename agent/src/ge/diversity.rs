@@ -374,8 +374,18 @@ mod tests {
     #[test]
     fn usual_case_and_divisor() {
         // 10 leaves of 3 names, one not a behaviour: divisor ⌈10/9⌉·9 = 18, 2 matches.
-        let names = ["MoveTowards_Hub", "Explore", "Explore", "CanMove", "CanMove", "CanMove", "CanMove", "CanMove",
-            "CanMove", "CanMove"];
+        let names = [
+            "MoveTowards_Hub",
+            "Explore",
+            "Explore",
+            "CanMove",
+            "CanMove",
+            "CanMove",
+            "CanMove",
+            "CanMove",
+            "CanMove",
+            "CanMove",
+        ];
         assert_eq!(diversity(&leaves(&names)), python_round4(2.0 / 18.0 * 25.0));
         assert_eq!(diversity(&leaves(&names)), 2.7778);
         // Nine behaviours plus an extra non-behaviour name: keys ≠ B → 9/18.

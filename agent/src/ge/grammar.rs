@@ -135,7 +135,9 @@ pub enum GrammarError {
     Empty,
     #[error("line {line}: missing `::=` (every non-blank, non-comment line must be `<name> ::= alternatives`)")]
     MissingDefinition { line: usize },
-    #[error("line {line}: bad left-hand side `{lhs}`: expected exactly one non-terminal such as `<name>` before `::=`")]
+    #[error(
+        "line {line}: bad left-hand side `{lhs}`: expected exactly one non-terminal such as `<name>` before `::=`"
+    )]
     BadLhs { line: usize, lhs: String },
     #[error("line {line}: rule <{name}> is defined a second time (first definition on line {first_line})")]
     DuplicateRule { line: usize, name: String, first_line: usize },
@@ -268,7 +270,14 @@ impl Grammar {
                 });
             }
             let mod_magic = mod_magic(alternatives.len() as u32);
-            rules.push(Rule { name: r.name, line: r.line, alternatives, min_steps: 0, min_path: Vec::new(), mod_magic });
+            rules.push(Rule {
+                name: r.name,
+                line: r.line,
+                alternatives,
+                min_steps: 0,
+                min_path: Vec::new(),
+                mod_magic,
+            });
         }
 
         let by_name = index.into_iter().map(|(k, v)| (k, v as u32)).collect();
@@ -280,10 +289,9 @@ impl Grammar {
     /// Read and parse a grammar file; errors name the path.
     pub fn load(path: impl AsRef<Path>) -> Result<Grammar, GrammarError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| GrammarError::Io { path: path.to_path_buf(), source })?;
-        Grammar::parse(&text)
-            .map_err(|e| GrammarError::InFile { path: path.to_path_buf(), source: Box::new(e) })
+        let text =
+            std::fs::read_to_string(path).map_err(|source| GrammarError::Io { path: path.to_path_buf(), source })?;
+        Grammar::parse(&text).map_err(|e| GrammarError::InFile { path: path.to_path_buf(), source: Box::new(e) })
     }
 
     /// §5.2: levelled `min_steps`, per-alternative `max_path`, `max_arity`, `min_path`.
@@ -524,7 +532,10 @@ mod tests {
         assert_eq!(forge.max_alternatives(), 7);
 
         let paths = |name: &str| -> Vec<u32> {
-            forge.rule_by_name(name).map(|r| r.alternatives().iter().map(|a| a.max_path()).collect()).unwrap_or_default()
+            forge
+                .rule_by_name(name)
+                .map(|r| r.alternatives().iter().map(|a| a.max_path()).collect())
+                .unwrap_or_default()
         };
         let min_path = |name: &str| forge.rule_by_name(name).map(|r| r.min_path().to_vec()).unwrap_or_default();
         assert_eq!(paths("root"), vec![6, 6]);
@@ -620,10 +631,7 @@ mod tests {
     #[test]
     fn error_duplicate_rule() {
         let e = err("<a> ::= x<b>\n<b> ::= y\n# c\n<b> ::= z\n");
-        assert!(
-            matches!(&e, GrammarError::DuplicateRule { line: 4, name, first_line: 2 } if name == "b"),
-            "{e:?}"
-        );
+        assert!(matches!(&e, GrammarError::DuplicateRule { line: 4, name, first_line: 2 } if name == "b"), "{e:?}");
         assert!(e.to_string().contains("line 4") && e.to_string().contains("line 2"), "{e}");
     }
 

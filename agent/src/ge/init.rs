@@ -31,7 +31,12 @@ pub struct Derivation {
 /// `codon_size` should exceed [`Grammar::max_alternatives`]; for a rule with at least
 /// `codon_size` alternatives (where Python's `randrange` would fail) the codon is the bare
 /// alternative index.
-pub fn uniform_tree<R: Rng + ?Sized>(grammar: &Grammar, codon_size: u32, max_tree_depth: usize, rng: &mut R) -> Derivation {
+pub fn uniform_tree<R: Rng + ?Sized>(
+    grammar: &Grammar,
+    codon_size: u32,
+    max_tree_depth: usize,
+    rng: &mut R,
+) -> Derivation {
     let limit = max_tree_depth.max(1) as i64;
     let max_arity = i64::from(grammar.max_arity());
     let mut genome: Vec<u32> = Vec::with_capacity(64);
@@ -57,9 +62,7 @@ pub fn uniform_tree<R: Rng + ?Sized>(grammar: &Grammar, codon_size: u32, max_tre
         } else if remaining < 0 {
             allowed.extend_from_slice(r.min_path());
         } else {
-            allowed.extend(
-                (0..alts.len() as u32).filter(|&i| i64::from(alts[i as usize].max_path()) < remaining),
-            );
+            allowed.extend((0..alts.len() as u32).filter(|&i| i64::from(alts[i as usize].max_path()) < remaining));
             if allowed.is_empty() {
                 allowed.extend_from_slice(r.min_path());
             }

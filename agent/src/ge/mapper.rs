@@ -78,12 +78,7 @@ impl Mapper {
     pub fn map(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> Mapping {
         let mut out = String::new();
         let st = self.map_into(grammar, genome, limits, &mut out);
-        Mapping {
-            valid: st.valid,
-            used_codons: st.used_codons,
-            depth: st.depth,
-            phenotype: st.valid.then_some(out),
-        }
+        Mapping { valid: st.valid, used_codons: st.used_codons, depth: st.depth, phenotype: st.valid.then_some(out) }
     }
 
     fn run<const OUT: bool>(
@@ -108,11 +103,7 @@ impl Mapper {
         let mut pos = 0usize;
         let mut wraps: i64 = -1;
         let max_wraps = limits.max_wraps as i64;
-        let depth_limit = if limits.max_tree_depth == 0 {
-            usize::MAX
-        } else {
-            limits.max_tree_depth
-        };
+        let depth_limit = if limits.max_tree_depth == 0 { usize::MAX } else { limits.max_tree_depth };
         let mut max_depth = 1usize;
         let rules = grammar.rules();
 
@@ -241,10 +232,10 @@ pub(crate) mod tests {
     pub(crate) fn test_new_golden() -> (Vec<u32>, usize, usize, String) {
         let genome = vec![
             52, 502, 361, 1386, 1210, 66, 193, 843, 1150, 1467, 453, 1815, 1659, 1945, 1430, 697, 319, 1963, 375, 780,
-            736, 1239, 140, 1099, 970, 1131, 1699, 1183, 1445, 168, 1584, 164, 1776, 780, 931, 507, 729, 823, 1248, 533,
-            336, 978, 1896, 1403, 1727, 471, 1134, 551, 433, 437, 1541, 1813, 373, 286, 1526, 1530, 1841, 1441, 450,
-            1044, 189, 342, 1286, 1624, 1393, 864, 1221, 130, 788, 781, 1220, 958, 1083, 514, 1988, 1133, 1762, 1930,
-            23, 1393, 1476, 234, 1396, 1812, 1099, 1537, 546, 1574, 1312, 696, 228, 601, 890, 323, 929, 6,
+            736, 1239, 140, 1099, 970, 1131, 1699, 1183, 1445, 168, 1584, 164, 1776, 780, 931, 507, 729, 823, 1248,
+            533, 336, 978, 1896, 1403, 1727, 471, 1134, 551, 433, 437, 1541, 1813, 373, 286, 1526, 1530, 1841, 1441,
+            450, 1044, 189, 342, 1286, 1624, 1393, 864, 1221, 130, 788, 781, 1220, 958, 1083, 514, 1988, 1133, 1762,
+            1930, 23, 1393, 1476, 234, 1396, 1812, 1099, 1537, 546, 1574, 1312, 696, 228, 601, 890, 323, 929, 6,
         ];
         let p = [
             "[Sequence]",

@@ -121,7 +121,10 @@ impl GeParams {
         if (self.codon_size as usize) <= n {
             return Err(ParamsError {
                 field: "codon_size",
-                problem: format!("({}) must exceed the largest number of alternatives of a rule ({n})", self.codon_size),
+                problem: format!(
+                    "({}) must exceed the largest number of alternatives of a rule ({n})",
+                    self.codon_size
+                ),
             });
         }
         Ok(())
@@ -173,13 +176,7 @@ pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Indiv
     let st = Mapper::new().map_into(grammar, &genome, params.map_limits(), &mut buf);
     if st.valid {
         let fitness = diversity(&buf);
-        Individual {
-            genome,
-            phenotype: Some(Arc::from(buf)),
-            used_codons: st.used_codons,
-            depth: st.depth,
-            fitness,
-        }
+        Individual { genome, phenotype: Some(Arc::from(buf)), used_codons: st.used_codons, depth: st.depth, fitness }
     } else {
         Individual { genome, ..Individual::default() }
     }
@@ -217,7 +214,9 @@ pub fn sort_by_fitness_desc(pop: &mut [Individual]) {
 /// Why a genetic step could not run. The pool is emptied regardless.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum GeError {
-    #[error("genetic step needs at least 2 parents, but truncation ({truncation}) of a pool of {pool} leaves {parents}")]
+    #[error(
+        "genetic step needs at least 2 parents, but truncation ({truncation}) of a pool of {pool} leaves {parents}"
+    )]
     TooFewParents { pool: usize, parents: usize, truncation: f64 },
     #[error("parent {index} has an empty genome")]
     EmptyParent { index: usize },
@@ -459,8 +458,8 @@ fn step<R: Rng + ?Sized>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ge::mapper::tests::{forge_golden, grammar, sf_golden, test_new_golden};
     use crate::ge::mapper::map_genome;
+    use crate::ge::mapper::tests::{forge_golden, grammar, sf_golden, test_new_golden};
     use crate::ge::testdata::{FORGE, SF, TEST_NEW};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
@@ -738,8 +737,7 @@ mod tests {
         }
         // Parents that can only produce over-long children: the step gives up cleanly.
         let long: Vec<u32> = forge_golden()[0].0.iter().cycle().take(400).copied().collect();
-        let mut pool: Vec<Individual> =
-            (0..6).map(|_| evaluate(&g, long.clone(), &GeParams::default())).collect();
+        let mut pool: Vec<Individual> = (0..6).map(|_| evaluate(&g, long.clone(), &GeParams::default())).collect();
         let p = GeParams { max_genome_length: 50, generation_size: 2, ..Default::default() };
         let e = genetic_step(&g, &mut pool, &p, &mut rng).expect_err("over-long parents");
         assert!(matches!(e, GeError::NoViableOffspring { produced: 0, .. }), "{e:?}");
@@ -793,14 +791,15 @@ mod tests {
             let t = std::time::Instant::now();
             for k in 0..batch {
                 let mut pool = pools[k % pools.len()].clone();
-                sink += genetic_step(&g, &mut pool, &p, &mut rng)
-                    .map(|w| w.genome.len())
-                    .unwrap_or(0);
+                sink += genetic_step(&g, &mut pool, &p, &mut rng).map(|w| w.genome.len()).unwrap_or(0);
             }
             best_step = best_step.min(t.elapsed().as_secs_f64() / batch as f64);
         }
         let per = (best_step - best_clone) * 1e6;
-        println!("genetic_step (pool of 7, forge.bnf): {per:.2} µs per step (pool clone {:.2} µs excluded; sink {sink})", best_clone * 1e6);
+        println!(
+            "genetic_step (pool of 7, forge.bnf): {per:.2} µs per step (pool clone {:.2} µs excluded; sink {sink})",
+            best_clone * 1e6
+        );
         assert!(per < 500.0, "genetic step far too slow: {per} µs");
     }
 }

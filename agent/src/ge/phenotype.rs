@@ -53,10 +53,16 @@ impl fmt::Display for CompositeKind {
 /// A node of the phenotype tree after the §4.3 construction rule.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum PNode {
-    Composite { kind: CompositeKind, children: Vec<PNode> },
+    Composite {
+        kind: CompositeKind,
+        children: Vec<PNode>,
+    },
     /// A leaf wrapper element: `text` is its leaf spec (e.g. `IsCarrying_Food`,
     /// `MoveTowardsNormal`), `tag` the wrapper tag (`PostCnd`, `PreCnd`, `Cnstr`, `Act`, …).
-    Leaf { text: String, tag: String },
+    Leaf {
+        text: String,
+        tag: String,
+    },
 }
 
 impl PNode {
@@ -152,10 +158,22 @@ pub const MAX_NESTING: usize = 256;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Token<'a> {
     /// `[?…?]`: XML declaration or processing instruction.
-    Decl { offset: usize },
-    Start { name: &'a str, self_closing: bool, offset: usize },
-    End { name: &'a str, offset: usize },
-    Text { text: &'a str, offset: usize },
+    Decl {
+        offset: usize,
+    },
+    Start {
+        name: &'a str,
+        self_closing: bool,
+        offset: usize,
+    },
+    End {
+        name: &'a str,
+        offset: usize,
+    },
+    Text {
+        text: &'a str,
+        offset: usize,
+    },
 }
 
 /// Streaming tokenizer shared by the tree parser and the diversity scan.
@@ -252,7 +270,8 @@ pub fn parse_phenotype(phenotype: &str) -> Result<PNode, PhenotypeError> {
             Some(Token::Start { name, self_closing, .. }) => break (name, self_closing),
         }
     };
-    let kind = CompositeKind::from_tag(name).ok_or_else(|| PhenotypeError::RootNotComposite { tag: name.to_string() })?;
+    let kind =
+        CompositeKind::from_tag(name).ok_or_else(|| PhenotypeError::RootNotComposite { tag: name.to_string() })?;
     let children = if self_closing { Vec::new() } else { children(&mut t, name, 1)? };
     // Epilog.
     loop {
@@ -454,7 +473,9 @@ mod tests {
         let tree = parse("[Selector][cond]A[/cond][cond]B_Hub[/cond][act]C[/act][/Selector]");
         assert_eq!(tree, sel(vec![leaf("A", "cond"), leaf("B_Hub", "cond"), leaf("C", "act")]));
         // The slot is not cleared by a later composite: leaves join the *latest* composite.
-        let tree = parse("[Sequence][a]1[/a][Selector][b]2[/b][/Selector][c]3[/c][Sequence][/Sequence][d]4[/d][e]5[/e][/Sequence]");
+        let tree = parse(
+            "[Sequence][a]1[/a][Selector][b]2[/b][/Selector][c]3[/c][Sequence][/Sequence][d]4[/d][e]5[/e][/Sequence]",
+        );
         assert_eq!(
             tree,
             seq(vec![

@@ -1,8 +1,6 @@
 //! Campaigns end to end: the `geese campaign` binary killed mid-way and resumed, failed
 //! trials, perturbation knobs in the trajectory, reports, figures and CSV export.
-use geese_orchestrator::campaign::{
-    run_campaign, Campaign, InProcess, RunOptions, TrialError, TrialRunner,
-};
+use geese_orchestrator::campaign::{run_campaign, Campaign, InProcess, RunOptions, TrialError, TrialRunner};
 use geese_orchestrator::config::RunSpec;
 use geese_orchestrator::report::{self, ReportOptions};
 use geese_orchestrator::store::Store;
@@ -31,11 +29,7 @@ obstacles_at = [100, 300]
 "#;
 
 fn quiet() -> RunOptions {
-    RunOptions {
-        jobs: 2,
-        retry_failed: false,
-        quiet: true,
-    }
+    RunOptions { jobs: 2, retry_failed: false, quiet: true }
 }
 
 type Key = (String, String, u64);
@@ -45,12 +39,7 @@ fn by_key(store: &Store) -> BTreeMap<Key, (i64, i64, Option<f64>)> {
         .trials()
         .expect("read trials")
         .into_iter()
-        .map(|t| {
-            (
-                (t.condition, t.task, t.seed),
-                (t.id, t.session, t.outcome.map(|o| o.final_pct)),
-            )
-        })
+        .map(|t| ((t.condition, t.task, t.seed), (t.id, t.session, t.outcome.map(|o| o.final_pct))))
         .collect()
 }
 
@@ -73,21 +62,12 @@ fn killed_campaign_resumes_without_losing_or_repeating_a_trial() {
     let deadline = Instant::now() + Duration::from_secs(120);
     loop {
         std::thread::sleep(Duration::from_millis(10));
-        let stored = if db.exists() {
-            Store::open(&db)
-                .and_then(|s| s.trials())
-                .map(|t| t.len())
-                .unwrap_or(0)
-        } else {
-            0
-        };
+        let stored =
+            if db.exists() { Store::open(&db).and_then(|s| s.trials()).map(|t| t.len()).unwrap_or(0) } else { 0 };
         if stored >= 3 {
             break;
         }
-        assert!(
-            child.try_wait().expect("poll child").is_none(),
-            "the campaign ended before it could be killed"
-        );
+        assert!(child.try_wait().expect("poll child").is_none(), "the campaign ended before it could be killed");
         assert!(Instant::now() < deadline, "no trial stored within 120 s");
     }
     child.kill().expect("kill geese campaign");
@@ -96,63 +76,30 @@ fn killed_campaign_resumes_without_losing_or_repeating_a_trial() {
     let store = Store::open(&db).expect("open db after kill");
     let before = by_key(&store);
     let total = 32;
-    assert!(
-        before.len() >= 3 && before.len() < total,
-        "{} trials stored at the kill",
-        before.len()
-    );
+    assert!(before.len() >= 3 && before.len() < total, "{} trials stored at the kill", before.len());
     // Only whole trials: each stored trial has all its step rows (every 7th and the last).
     for (id, _, _) in before.values() {
         assert_eq!(store.step_count(*id).expect("count"), 400 / 7 + 1);
     }
     let sessions = store.sessions().expect("sessions");
     assert_eq!(sessions.len(), 1);
-    assert!(
-        !sessions[0].finished,
-        "the killed session must not look finished"
-    );
+    assert!(!sessions[0].finished, "the killed session must not look finished");
     drop(store);
 
     // Resume with the binary.
-    let out = Command::new(&bin)
-        .args(["campaign", "-q", "--db"])
-        .arg(&db)
-        .arg(&file)
-        .output()
-        .expect("resume");
-    assert!(
-        out.status.success(),
-        "resume failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = Command::new(&bin).args(["campaign", "-q", "--db"]).arg(&db).arg(&file).output().expect("resume");
+    assert!(out.status.success(), "resume failed: {}", String::from_utf8_lossy(&out.stderr));
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        stdout.contains(&format!("{} already stored", before.len())),
-        "{stdout}"
-    );
+    assert!(stdout.contains(&format!("{} already stored", before.len())), "{stdout}");
 
     let store = Store::open(&db).expect("open db after resume");
     let after = by_key(&store);
-    assert_eq!(
-        after.len(),
-        total,
-        "every planned trial is stored exactly once"
-    );
+    assert_eq!(after.len(), total, "every planned trial is stored exactly once");
     for (k, v) in &before {
-        assert_eq!(
-            after.get(k),
-            Some(v),
-            "trial {k:?} was run again or changed by the resume"
-        );
+        assert_eq!(after.get(k), Some(v), "trial {k:?} was run again or changed by the resume");
     }
-    assert!(after
-        .iter()
-        .filter(|(k, _)| !before.contains_key(*k))
-        .all(|(_, (_, session, _))| *session == 2));
-    assert!(
-        after.values().all(|(_, _, pct)| pct.is_some()),
-        "a trial failed"
-    );
+    assert!(after.iter().filter(|(k, _)| !before.contains_key(*k)).all(|(_, (_, session, _))| *session == 2));
+    assert!(after.values().all(|(_, _, pct)| pct.is_some()), "a trial failed");
     let sessions = store.sessions().expect("sessions");
     assert_eq!(
         (sessions[1].skipped, sessions[1].done, sessions[1].finished),
@@ -164,8 +111,7 @@ fn killed_campaign_resumes_without_losing_or_repeating_a_trial() {
     let mut clean = Store::create(&dir.path().join("clean.sqlite")).expect("clean db");
     let o = run_campaign(&campaign, &mut clean, &InProcess, &quiet()).expect("clean run");
     assert_eq!((o.done, o.failed, o.skipped), (total, 0, 0));
-    let clean: BTreeMap<Key, Option<f64>> =
-        by_key(&clean).into_iter().map(|(k, v)| (k, v.2)).collect();
+    let clean: BTreeMap<Key, Option<f64>> = by_key(&clean).into_iter().map(|(k, v)| (k, v.2)).collect();
     let resumed: BTreeMap<Key, Option<f64>> = after.into_iter().map(|(k, v)| (k, v.2)).collect();
     assert_eq!(clean, resumed);
 }
@@ -177,11 +123,7 @@ impl TrialRunner for FlakyRunner {
     fn transport(&self) -> &str {
         "flaky"
     }
-    fn run(
-        &self,
-        spec: &RunSpec,
-        observe: &mut dyn FnMut(&StepReport),
-    ) -> Result<TrialSummary, TrialError> {
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
         if spec.config.seed == 2 {
             panic!("injected failure");
         }
@@ -212,25 +154,14 @@ fn failed_trials_are_recorded_and_the_campaign_goes_on() {
     assert_eq!((o.done, o.failed), (2, 4));
     let trials = store.trials().expect("trials");
     let err = |cond: &str, seed: u64| {
-        trials
-            .iter()
-            .find(|t| t.condition == cond && t.seed == seed)
-            .and_then(|t| t.error.clone())
-            .unwrap_or_default()
+        trials.iter().find(|t| t.condition == cond && t.seed == seed).and_then(|t| t.error.clone()).unwrap_or_default()
     };
     assert!(err("initial_obstacles=0", 2).contains("panic: injected failure"));
-    assert!(
-        err("initial_obstacles=100", 1).contains("obstacle"),
-        "{}",
-        err("initial_obstacles=100", 1)
-    );
+    assert!(err("initial_obstacles=100", 1).contains("obstacle"), "{}", err("initial_obstacles=100", 1));
     // A second invocation skips failed trials unless asked to retry them.
     let o = run_campaign(&c, &mut store, &FlakyRunner, &quiet()).expect("again");
     assert_eq!((o.skipped, o.done, o.failed), (6, 0, 0));
-    let retry = RunOptions {
-        retry_failed: true,
-        ..quiet()
-    };
+    let retry = RunOptions { retry_failed: true, ..quiet() };
     let o = run_campaign(&c, &mut store, &InProcess, &retry).expect("retry");
     assert_eq!((o.skipped, o.done, o.failed), (2, 1, 3));
     assert_eq!(store.trials().expect("trials").len(), 6);
@@ -244,11 +175,7 @@ impl TrialRunner for Recorder {
     fn transport(&self) -> &str {
         "in-process"
     }
-    fn run(
-        &self,
-        spec: &RunSpec,
-        observe: &mut dyn FnMut(&StepReport),
-    ) -> Result<TrialSummary, TrialError> {
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
         let mut reps = Vec::new();
         let s = InProcess.run(spec, &mut |r| {
             reps.push(r.clone());
@@ -290,19 +217,12 @@ fn perturbation_knobs_act_at_their_step() {
     let o = run_campaign(&c, &mut store, &rec, &quiet()).expect("runs");
     assert_eq!(o.done, 2);
     let runs = rec.0.into_inner().expect("lock");
-    let (kill_lt, obstacles): (Vec<_>, Vec<_>) = runs
-        .values()
-        .partition(|r| r.iter().any(|s| s.live_agents < 40));
+    let (kill_lt, obstacles): (Vec<_>, Vec<_>) = runs.values().partition(|r| r.iter().any(|s| s.live_agents < 40));
     let r = &kill_lt[0];
     // Killed right after step 20 is resolved; step 20's report is taken after the hooks.
-    assert_eq!(
-        (r[18].live_agents, r[19].live_agents, r[149].live_agents),
-        (40, 20, 20)
-    );
+    assert_eq!((r[18].live_agents, r[19].live_agents, r[149].live_agents), (40, 20, 20));
     // Lateral transfer off for steps 61..=80: no gene kept, so the LT rate is 0.
-    assert!(r[60..80]
-        .iter()
-        .all(|s| s.lt_mean == 0.0 && s.genetic_steps == 0));
+    assert!(r[60..80].iter().all(|s| s.lt_mean == 0.0 && s.genetic_steps == 0));
     assert!(r[..60].iter().any(|s| s.lt_mean > 0.0) && r[80..].iter().any(|s| s.lt_mean > 0.0));
     // Obstacles at 100 pause lateral transfer for 30 steps (reference coupling on).
     let r = &obstacles[0];
@@ -312,11 +232,7 @@ fn perturbation_knobs_act_at_their_step() {
 
 fn png_ok(path: &Path) {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    assert!(
-        bytes.starts_with(b"\x89PNG") && bytes.len() > 5_000,
-        "{} is not a drawn PNG",
-        path.display()
-    );
+    assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 5_000, "{} is not a drawn PNG", path.display());
 }
 
 #[test]
@@ -346,29 +262,13 @@ fn smoke_campaigns_report_and_export() {
     let bin = geese_tests::bin_path("geese-orchestrator", "geese");
     let db = dir.path().join("smoke-fig4-ip-st.sqlite");
     let out_dir = dir.path().join("fig4");
-    let out = Command::new(&bin)
-        .arg("report")
-        .arg(&db)
-        .arg("--out")
-        .arg(&out_dir)
-        .output()
-        .expect("report");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = Command::new(&bin).arg("report").arg(&db).arg("--out").arg(&out_dir).output().expect("report");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("Pooled by ip"), "{stdout}");
-    for f in [
-        "curves-foraging-st-7",
-        "resilience-foraging",
-        "final-foraging",
-    ] {
+    for f in ["curves-foraging-st-7", "resilience-foraging", "final-foraging"] {
         png_ok(&out_dir.join(format!("{f}.png")));
-        assert!(std::fs::read_to_string(out_dir.join(format!("{f}.svg")))
-            .expect("svg")
-            .contains("<svg"));
+        assert!(std::fs::read_to_string(out_dir.join(format!("{f}.svg"))).expect("svg").contains("<svg"));
     }
     for f in ["conditions.csv", "pooled.csv", "fits.csv", "points.csv"] {
         assert!(out_dir.join(f).exists(), "{f}");
@@ -386,51 +286,26 @@ fn smoke_campaigns_report_and_export() {
     let out = Command::new(&bin)
         .arg("report")
         .arg(&db)
-        .args([
-            "--efficiency",
-            "code",
-            "--power",
-            "code",
-            "--no-plots",
-            "--out",
-        ])
+        .args(["--efficiency", "code", "--power", "code", "--no-plots", "--out"])
         .arg(dir.path().join("abl"))
         .output()
         .expect("report");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(String::from_utf8_lossy(&out.stdout).contains("sec5-ablation"));
 
     // CSV export: one trials row per trial, step rows of every trial, the manifest.
     let csv = dir.path().join("csv");
-    let out = Command::new(&bin)
-        .arg("export")
-        .arg(&db)
-        .arg("--out")
-        .arg(&csv)
-        .output()
-        .expect("export");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = Command::new(&bin).arg("export").arg(&db).arg("--out").arg(&csv).output().expect("export");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let trials = std::fs::read_to_string(csv.join("trials.csv")).expect("trials.csv");
     assert_eq!(trials.lines().count(), 1 + 3 * 2 * 2 * 2);
     let steps = std::fs::read_to_string(csv.join("steps.csv")).expect("steps.csv");
     assert_eq!(steps.lines().count(), 1 + 24 * 200);
-    let manifest: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(csv.join("manifest.json")).expect("manifest"),
-    )
-    .expect("json");
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(csv.join("manifest.json")).expect("manifest")).expect("json");
     assert_eq!(manifest["name"], "smoke-ablation");
     assert!(manifest["versions"]["git_revision"].is_string());
-    assert!(manifest["campaign_file"]
-        .as_str()
-        .is_some_and(|s| s.contains("obstacles_at")));
+    assert!(manifest["campaign_file"].as_str().is_some_and(|s| s.contains("obstacles_at")));
 }
 
 #[test]
@@ -438,22 +313,10 @@ fn bad_campaign_file_is_an_error_naming_the_key() {
     let dir = tempfile::tempdir().expect("tempdir");
     let bin = geese_tests::bin_path("geese-orchestrator", "geese");
     for (text, key) in [
-        (
-            "tasks = [\"foraging\"]\nseeds = 2\n[[grid]]\nip = [0.5, 1.2]\n",
-            "grid[0].ip[1]",
-        ),
-        (
-            "tasks = [\"foraging\"]\nseeds = 2\n[[grid]]\nobstacle = [1]\n",
-            "grid[0].obstacle",
-        ),
-        (
-            "tasks = [\"foraging\"]\nseeds = 2\nsteps = 5\n[[grid]]\nip = 0.5\n",
-            "steps",
-        ),
-        (
-            "tasks = [\"foraging\"]\nseeds = 2\n[[grid]]\nst = []\n",
-            "grid[0].st",
-        ),
+        ("tasks = [\"foraging\"]\nseeds = 2\n[[grid]]\nip = [0.5, 1.2]\n", "grid[0].ip[1]"),
+        ("tasks = [\"foraging\"]\nseeds = 2\n[[grid]]\nobstacle = [1]\n", "grid[0].obstacle"),
+        ("tasks = [\"foraging\"]\nseeds = 2\nsteps = 5\n[[grid]]\nip = 0.5\n", "steps"),
+        ("tasks = [\"foraging\"]\nseeds = 2\n[[grid]]\nst = []\n", "grid[0].st"),
     ] {
         let f = dir.path().join("bad.toml");
         std::fs::write(&f, text).expect("write");

@@ -82,7 +82,14 @@ fn cli_grammar_map_matches_golden_vectors() {
         v["phenotype"],
         "[?xml version=%1.0% encoding=%UTF-8%?][Sequence][Selector][PostCnd]DummyNode[/PostCnd][Sequence][Sequence][Cnstr]IsDropable_Hub[/Cnstr][/Sequence][Act]Explore_0_Avoid[/Act][/Sequence][/Selector][/Sequence]"
     );
-    let (ok, out, _) = geese(&["grammar", "map", "--grammar", "betr-foraging-avoid", "--genome", "0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0"]);
+    let (ok, out, _) = geese(&[
+        "grammar",
+        "map",
+        "--grammar",
+        "betr-foraging-avoid",
+        "--genome",
+        "0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0",
+    ]);
     assert!(ok);
     assert_eq!(out.trim(), r#"{"valid":false}"#);
     let (ok, out, err) = geese(&[
@@ -95,7 +102,10 @@ fn cli_grammar_map_matches_golden_vectors() {
     ]);
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(out.trim()).expect("json");
-    assert_eq!((v["used_codons"].as_u64(), v["depth"].as_u64(), v["diversity"].as_f64()), (Some(22), Some(10), Some(13.8889)));
+    assert_eq!(
+        (v["used_codons"].as_u64(), v["depth"].as_u64(), v["diversity"].as_f64()),
+        (Some(22), Some(10), Some(13.8889))
+    );
 }
 
 #[test]
@@ -140,13 +150,15 @@ fn cli_rejects_bad_input_with_a_named_error() {
 fn cli_run_writes_csv_and_manifest() {
     let dir = tempfile::tempdir().expect("tmp");
     let out = dir.path().join("r");
-    let (ok, stdout, err) = geese(&["run", "--agents", "20", "--steps", "50", "--seed", "4", "-q", "--out", out.to_str().expect("utf8")]);
+    let (ok, stdout, err) =
+        geese(&["run", "--agents", "20", "--steps", "50", "--seed", "4", "-q", "--out", out.to_str().expect("utf8")]);
     assert!(ok, "{err}");
     assert!(stdout.contains("final task %"), "{stdout}");
     let csv = std::fs::read_to_string(out.join("steps.csv")).expect("csv");
     assert_eq!(csv.lines().count(), 51);
     assert!(csv.starts_with("step,task_pct"));
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).expect("manifest")).expect("json");
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).expect("manifest")).expect("json");
     assert_eq!(m["seed"], 4);
     assert_eq!(m["config"]["world"]["agents"], 20);
     assert!(m["versions"]["git_revision"].is_string());

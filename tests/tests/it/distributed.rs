@@ -26,11 +26,7 @@ fn bin_dir() -> PathBuf {
 }
 
 fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunConfig {
-    let mut c = RunConfig {
-        steps,
-        seed,
-        ..Default::default()
-    };
+    let mut c = RunConfig { steps, seed, ..Default::default() };
     c.world.agents = agents;
     c.world.layout = layout;
     c
@@ -48,10 +44,7 @@ fn options(processes: u32, per: Option<u32>) -> NetOptions {
         agents_per_process: per,
         bin_dir: Some(bin_dir()),
         stall: Duration::from_secs(60),
-        deadlines: Deadlines {
-            join_ms: 60_000,
-            ..Deadlines::default()
-        },
+        deadlines: Deadlines { join_ms: 60_000, ..Deadlines::default() },
         ..NetOptions::default()
     }
 }
@@ -73,12 +66,7 @@ fn distributed(cfg: &RunConfig, opts: &NetOptions) -> (Vec<NetReport>, Vec<u32>)
 fn alive(pid: u32) -> bool {
     // A zombie has no status worth the name; /proc/<pid>/stat state Z counts as gone.
     match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
-        Ok(s) => !s
-            .rsplit(')')
-            .next()
-            .unwrap_or("")
-            .trim_start()
-            .starts_with('Z'),
+        Ok(s) => !s.rsplit(')').next().unwrap_or("").trim_start().starts_with('Z'),
         Err(_) => false,
     }
 }
@@ -104,25 +92,13 @@ fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
     let expected = in_process(&cfg);
     let (got, pids) = distributed(&cfg, &options(20, None));
     assert_eq!(got.len(), 300);
-    assert!(
-        expected.iter().map(|r| r.lt_mean).sum::<f64>() > 0.0,
-        "no lateral transfer to compare"
-    );
+    assert!(expected.iter().map(|r| r.lt_mean).sum::<f64>() > 0.0, "no lateral transfer to compare");
     for (a, b) in expected.iter().zip(step_reports(&got).iter()) {
-        assert_eq!(
-            a, b,
-            "step {} differs (digest of positions and genes)",
-            a.step
-        );
+        assert_eq!(a, b, "step {} differs (digest of positions and genes)", a.step);
     }
-    let late: u32 = got
-        .iter()
-        .map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing)
-        .sum();
+    let late: u32 = got.iter().map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing).sum();
     assert_eq!(late, 0);
-    assert!(got
-        .iter()
-        .all(|r| r.net.processes == 20 && r.net.hostile == 0));
+    assert!(got.iter().all(|r| r.net.processes == 20 && r.net.hostile == 0));
     assert_all_gone(&pids);
 }
 
@@ -133,29 +109,11 @@ fn hosted_agents_and_perturbations_equal_in_process() {
     let mut cfg = config(24, 300, 9, Layout::Reference);
     cfg.world.grid = 5;
     cfg.perturbations = vec![
-        Scheduled {
-            at: 40,
-            change: Perturbation::AddObstacles {
-                count: 2,
-                radius: 6,
-            },
-        },
-        Scheduled {
-            at: 80,
-            change: Perturbation::KillFraction(0.25),
-        },
-        Scheduled {
-            at: 120,
-            change: Perturbation::SetIp(0.5),
-        },
-        Scheduled {
-            at: 160,
-            change: Perturbation::SetLateralTransfer(false),
-        },
-        Scheduled {
-            at: 200,
-            change: Perturbation::SetLateralTransfer(true),
-        },
+        Scheduled { at: 40, change: Perturbation::AddObstacles { count: 2, radius: 6 } },
+        Scheduled { at: 80, change: Perturbation::KillFraction(0.25) },
+        Scheduled { at: 120, change: Perturbation::SetIp(0.5) },
+        Scheduled { at: 160, change: Perturbation::SetLateralTransfer(false) },
+        Scheduled { at: 200, change: Perturbation::SetLateralTransfer(true) },
     ];
     let expected = in_process(&cfg);
     assert!(expected.last().is_some_and(|r| r.live_agents == 18));
@@ -181,41 +139,23 @@ fn gene_loss_half_is_seeded_and_nothing_deadlocks_under_loss() {
     assert_eq!(expected, step_reports(&got));
     let lost: u32 = got.iter().map(|r| r.report.genes_lost).sum();
     assert!(lost > 100, "gene loss 0.5 lost only {lost} deliveries");
-    assert!(
-        got.iter().any(|r| r.report.lt_mean > 0.0),
-        "no lateral transfer left at all"
-    );
+    assert!(got.iter().any(|r| r.report.lt_mean > 0.0), "no lateral transfer left at all");
 
     // All three kinds of loss together: the run finishes without hitting a deadline and
     // the report counts each kind.
     let mut opts = options(10, Some(2));
-    opts.loss = LossRates {
-        intent: 0.2,
-        percept: 0.2,
-    };
+    opts.loss = LossRates { intent: 0.2, percept: 0.2 };
     opts.deadlines.intent_ms = 3_000;
     opts.deadlines.gene_ms = 2_000;
     let started = Instant::now();
     let (lossy, pids2) = distributed(&cfg, &opts);
     assert_eq!(lossy.len(), 300);
     let sum = |f: fn(&NetReport) -> u32| lossy.iter().map(f).sum::<u32>();
-    assert!(
-        sum(|r| r.net.intents_lost) > 300,
-        "intents lost: {}",
-        sum(|r| r.net.intents_lost)
-    );
-    assert!(
-        sum(|r| r.net.percepts_lost) > 300,
-        "percepts lost: {}",
-        sum(|r| r.net.percepts_lost)
-    );
+    assert!(sum(|r| r.net.intents_lost) > 300, "intents lost: {}", sum(|r| r.net.intents_lost));
+    assert!(sum(|r| r.net.percepts_lost) > 300, "percepts lost: {}", sum(|r| r.net.percepts_lost));
     assert!(sum(|r| r.report.genes_lost) > 100);
     assert!(sum(|r| r.report.missing_intents) >= sum(|r| r.net.intents_lost));
-    assert_eq!(
-        sum(|r| r.net.intents_late + r.net.genes_late),
-        0,
-        "a wait ran into its deadline"
-    );
+    assert_eq!(sum(|r| r.net.intents_late + r.net.genes_late), 0, "a wait ran into its deadline");
     assert!(started.elapsed() < Duration::from_secs(90));
     assert_all_gone(&pids);
     assert_all_gone(&pids2);
@@ -255,26 +195,14 @@ fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
     assert_eq!(reps.len(), 1500);
     assert!(reps[..100].iter().all(|r| r.report.live_agents == 20));
     // The world notices the departures (liveliness) and keeps stepping with 15.
-    let first15 = reps
-        .iter()
-        .position(|r| r.report.live_agents == 15)
-        .expect("kills noticed");
+    let first15 = reps.iter().position(|r| r.report.live_agents == 15).expect("kills noticed");
     assert!(first15 < 500, "kills noticed only at step {}", first15 + 1);
-    assert!(reps[first15..600]
-        .iter()
-        .all(|r| r.report.live_agents == 15 && r.net.processes == 15));
+    assert!(reps[first15..600].iter().all(|r| r.report.live_agents == 15 && r.net.processes == 15));
     // The survivors kept learning and acting: not one step without them.
-    assert!(reps[first15..600]
-        .iter()
-        .all(|r| r.report.missing_intents == 0));
+    assert!(reps[first15..600].iter().all(|r| r.report.missing_intents == 0));
     // The restarted processes rejoin (fresh genes) and the swarm is whole again.
-    assert!(
-        reps[600..].iter().any(|r| r.report.live_agents == 20),
-        "restarted agents never rejoined"
-    );
-    assert!(reps
-        .last()
-        .is_some_and(|r| r.report.live_agents == 20 && r.net.processes == 20));
+    assert!(reps[600..].iter().any(|r| r.report.live_agents == 20), "restarted agents never rejoined");
+    assert!(reps.last().is_some_and(|r| r.report.live_agents == 20 && r.net.processes == 20));
     // Nobody waited for a dead process beyond what the liveliness tokens told.
     let late: u32 = reps.iter().map(|r| r.net.intents_late).sum();
     assert!(late <= 5, "{late} intents hit the deadline");
@@ -296,8 +224,7 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
     let expected = in_process(&cfg);
     let spec = cfg.clone().validate().expect("valid config");
     let opts = options(4, Some(3));
-    let (tx, rx) =
-        std::sync::mpsc::channel::<(String, geese_proto::zenoh_bus::CommonArgs, (i32, i32))>();
+    let (tx, rx) = std::sync::mpsc::channel::<(String, geese_proto::zenoh_bus::CommonArgs, (i32, i32))>();
     let mut sent = false;
     let mut reps: Vec<NetReport> = Vec::new();
     let mut pids = Vec::new();
@@ -308,48 +235,31 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
         };
         let rt = zenoh_bus::runtime(1).expect("runtime");
         rt.block_on(async move {
-            let session = tokio::time::timeout(
-                Duration::from_secs(20),
-                zenoh_bus::open(&client, Role::Client),
-            )
-            .await
-            .expect("open in time")
-            .expect("open");
+            let session = tokio::time::timeout(Duration::from_secs(20), zenoh_bus::open(&client, Role::Client))
+                .await
+                .expect("open in time")
+                .expect("open");
             let (cx, cy): (i32, i32) = cell;
             let mut n = 0;
             let forged_for = |agent: u32, step: u64| IntentBatch {
                 step,
-                intents: vec![Intent {
-                    step,
-                    agent,
-                    heading: 0.0,
-                    ops: vec![],
-                    stats: AgentStats::default(),
-                }],
+                intents: vec![Intent { step, agent, heading: 0.0, ops: vec![], stats: AgentStats::default() }],
                 idle: vec![],
                 counters: Default::default(),
             };
             let from0 = AgentRange::new(0, 3).expect("range");
             let mut bad_version = encode(&forged_for(0, 1)).expect("encode");
             bad_version[0] = 99;
-            let garbage = vec![
-                1u8, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff,
-            ];
+            let garbage = vec![1u8, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff];
             for round in 0..20u64 {
                 let msgs: Vec<(String, Vec<u8>)> = vec![
                     // Undecodable and wrong-version intents.
                     (keys::agents_action(&run, from0), garbage.clone()),
                     (keys::agents_action(&run, from0), bad_version.clone()),
                     // An intent for agent 5 sent on agent process 0-2's key.
-                    (
-                        keys::agents_action(&run, from0),
-                        encode(&forged_for(5, round + 1)).expect("encode"),
-                    ),
+                    (keys::agents_action(&run, from0), encode(&forged_for(5, round + 1)).expect("encode")),
                     // An intent from the far future.
-                    (
-                        keys::agents_action(&run, from0),
-                        encode(&forged_for(1, 1_000_000)).expect("encode"),
-                    ),
+                    (keys::agents_action(&run, from0), encode(&forged_for(1, 1_000_000)).expect("encode")),
                     // A key that names no agent range.
                     (format!("geese/{run}/agent/nobody/action"), garbage.clone()),
                     // Gene batches: garbage, and genes of agents the key does not cover.
@@ -394,21 +304,14 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
         reps.push(r.clone());
         if !sent && r.report.step >= 5 {
             sent = true;
-            let _ = tx.send((
-                swarm.run_name().to_string(),
-                swarm.client_args().clone(),
-                hub_cell,
-            ));
+            let _ = tx.send((swarm.run_name().to_string(), swarm.client_args().clone(), hub_cell));
         }
         pids = swarm.all_pids();
     })
     .expect("distributed run");
     let published = attacker.join().expect("attacker thread");
     assert!(out.completed);
-    assert!(
-        published > 100,
-        "the attacker published only {published} messages"
-    );
+    assert!(published > 100, "the attacker published only {published} messages");
     let hostile: u32 = reps.iter().map(|r| r.net.hostile).sum();
     assert!(hostile >= 100, "only {hostile} hostile messages counted");
     // Dropped means dropped: the trajectory is the in-process one.
@@ -423,10 +326,7 @@ fn geese_run_processes_writes_the_same_csv_and_leaves_no_orphans() {
     let bins = bin_dir();
     let run = |extra: &[&str], out: &str| {
         let status = std::process::Command::new(&geese)
-            .args([
-                "run", "--agents", "12", "--steps", "150", "--seed", "2", "--layout", "paper",
-                "-q", "--out",
-            ])
+            .args(["run", "--agents", "12", "--steps", "150", "--seed", "2", "--layout", "paper", "-q", "--out"])
             .arg(dir.path().join(out))
             .args(extra)
             .env("GEESE_BIN_DIR", &bins)
@@ -441,13 +341,7 @@ fn geese_run_processes_writes_the_same_csv_and_leaves_no_orphans() {
     assert_eq!(a, b);
     let m = std::fs::read_to_string(dir.path().join("net/manifest.json")).expect("manifest");
     assert!(m.contains("\"transport\": \"zenoh\""));
-    assert!(
-        std::fs::read_to_string(dir.path().join("net/net.csv"))
-            .expect("net.csv")
-            .lines()
-            .count()
-            == 151
-    );
+    assert!(std::fs::read_to_string(dir.path().join("net/net.csv")).expect("net.csv").lines().count() == 151);
 }
 
 /// Children of `pid` (from /proc).
@@ -459,10 +353,7 @@ fn children_of(pid: u32) -> Vec<u32> {
                 continue;
             };
             if let Ok(stat) = std::fs::read_to_string(format!("/proc/{p}/stat")) {
-                let ppid = stat
-                    .rsplit(')')
-                    .next()
-                    .and_then(|rest| rest.split_whitespace().nth(1)?.parse::<u32>().ok());
+                let ppid = stat.rsplit(')').next().and_then(|rest| rest.split_whitespace().nth(1)?.parse::<u32>().ok());
                 if ppid == Some(pid) {
                     v.push(p);
                 }
@@ -477,17 +368,7 @@ fn children_of(pid: u32) -> Vec<u32> {
 fn long_run(dir: &std::path::Path) -> (std::process::Child, Vec<u32>) {
     let geese = geese_tests::bin_path("geese-orchestrator", "geese");
     let child = std::process::Command::new(&geese)
-        .args([
-            "run",
-            "--agents",
-            "6",
-            "--steps",
-            "1000000",
-            "-q",
-            "--processes",
-            "3",
-            "--out",
-        ])
+        .args(["run", "--agents", "6", "--steps", "1000000", "-q", "--processes", "3", "--out"])
         .arg(dir)
         .env("GEESE_BIN_DIR", bin_dir())
         .stdout(std::process::Stdio::null())
@@ -497,28 +378,19 @@ fn long_run(dir: &std::path::Path) -> (std::process::Child, Vec<u32>) {
     let until = Instant::now() + Duration::from_secs(60);
     let steps = dir.join("steps.csv");
     loop {
-        let lines = std::fs::read_to_string(&steps)
-            .map(|s| s.lines().count())
-            .unwrap_or(0);
+        let lines = std::fs::read_to_string(&steps).map(|s| s.lines().count()).unwrap_or(0);
         if lines > 1 || Instant::now() > until {
             break;
         }
         std::thread::sleep(Duration::from_millis(100));
     }
     let kids = children_of(child.id());
-    assert_eq!(
-        kids.len(),
-        4,
-        "world and 3 agent processes expected, found {kids:?}"
-    );
+    assert_eq!(kids.len(), 4, "world and 3 agent processes expected, found {kids:?}");
     (child, kids)
 }
 
 fn signal(pid: u32, sig: &str) {
-    let ok = std::process::Command::new("kill")
-        .args([sig, &pid.to_string()])
-        .status()
-        .expect("kill");
+    let ok = std::process::Command::new("kill").args([sig, &pid.to_string()]).status().expect("kill");
     assert!(ok.success());
 }
 
@@ -541,10 +413,7 @@ fn ctrl_c_or_sigkill_of_the_launcher_leaves_no_orphans() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (mut child, kids) = long_run(dir.path());
     signal(child.id(), "-INT");
-    assert!(
-        wait_exit(&mut child, Duration::from_secs(20)),
-        "launcher did not exit on SIGINT"
-    );
+    assert!(wait_exit(&mut child, Duration::from_secs(20)), "launcher did not exit on SIGINT");
     assert_all_gone(&kids);
 
     // SIGKILL of the launcher: the world sees the orchestrator's token go and stops,

@@ -14,8 +14,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, GeneBatch, IntentBatch, NetCounters, NetReport, NetRunSpec, ReportMsg, RunInfo,
-    Tick, LOSS_SALT_INTENT, NO_CELL,
+    loss_draw, GeneBatch, IntentBatch, NetCounters, NetReport, NetRunSpec, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT,
+    NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
@@ -57,15 +57,11 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
-    let text = std::fs::read_to_string(&args.spec)
-        .with_context(|| format!("cannot read {}", args.spec.display()))?;
-    let spec: NetRunSpec = serde_json::from_str(&text)
-        .with_context(|| format!("{} is not a run specification", args.spec.display()))?;
+    let text = std::fs::read_to_string(&args.spec).with_context(|| format!("cannot read {}", args.spec.display()))?;
+    let spec: NetRunSpec =
+        serde_json::from_str(&text).with_context(|| format!("{} is not a run specification", args.spec.display()))?;
     if !keys::valid_run_name(&spec.run) {
-        bail!(
-            "run name {:?} must be one key chunk of letters, digits, '_', '-', '.'",
-            spec.run
-        );
+        bail!("run name {:?} must be one key chunk of letters, digits, '_', '-', '.'", spec.run);
     }
     let rt = zenoh_bus::runtime(args.threads)?;
     rt.block_on(serve(args.zenoh, spec))
@@ -78,14 +74,9 @@ struct InfoState {
 }
 
 async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
-    let wcfg: WorldConfig =
-        serde_json::from_str(&spec.world_json).context("world configuration")?;
+    let wcfg: WorldConfig = serde_json::from_str(&spec.world_json).context("world configuration")?;
     if wcfg.agents != spec.agents {
-        bail!(
-            "spec: {} agents but the world configuration has {}",
-            spec.agents,
-            wcfg.agents
-        );
+        bail!("spec: {} agents but the world configuration has {}", spec.agents, wcfg.agents);
     }
     let mut world = World::new(wcfg, spec.seed).map_err(|e| anyhow::anyhow!("world: {e}"))?;
     // Exactly the in-process driver's set-up order (orchestrator/src/trial.rs).
@@ -97,10 +88,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
     let (session, locators) = zenoh_bus::open_world(&common).await?;
     let (tx, mut rx) = unbounded_channel::<Event>();
 
-    let info = Arc::new(Mutex::new(InfoState {
-        next_step: world.step(),
-        cells: body_cells(&world),
-    }));
+    let info = Arc::new(Mutex::new(InfoState { next_step: world.step(), cells: body_cells(&world) }));
     let fixed = (spec.clone(), world.geometry(), world.hub());
     let info_q = info.clone();
     let _queryable = session
@@ -110,13 +98,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
                 Ok(s) => (s.next_step, s.cells.clone()),
                 Err(_) => return,
             };
-            let ri = RunInfo {
-                spec: fixed.0.clone(),
-                geometry: fixed.1,
-                hub: fixed.2,
-                next_step,
-                cells,
-            };
+            let ri = RunInfo { spec: fixed.0.clone(), geometry: fixed.1, hub: fixed.2, next_step, cells };
             if let Ok(bytes) = encode(&ri) {
                 let _ = q.reply(q.key_expr().clone(), bytes).wait();
             }
@@ -149,15 +131,9 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         .declare_subscriber(keys::all_gene_batches(&run))
         .callback(move |s| {
             let bytes = s.payload().to_bytes();
-            let out = h
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .on_batch(s.key_expr().as_str(), &bytes);
+            let out = h.lock().unwrap_or_else(|e| e.into_inner()).on_batch(s.key_expr().as_str(), &bytes);
             if let Some((key, agg)) = out {
-                let _ = s2
-                    .put(key, agg)
-                    .congestion_control(CongestionControl::Block)
-                    .wait();
+                let _ = s2.put(key, agg).congestion_control(CongestionControl::Block).wait();
             }
         })
         .await
@@ -177,18 +153,11 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         .history(true)
         .callback(move |s| {
             let alive = s.kind() == SampleKind::Put;
-            let _ = t.send(Event::Presence {
-                alive,
-                key: s.key_expr().as_str().to_owned(),
-            });
+            let _ = t.send(Event::Presence { alive, key: s.key_expr().as_str().to_owned() });
         })
         .await
         .map_err(zerr)?;
-    let token = session
-        .liveliness()
-        .declare_token(keys::world_presence(&run))
-        .await
-        .map_err(zerr)?;
+    let token = session.liveliness().declare_token(keys::world_presence(&run)).await.map_err(zerr)?;
     spawn_signal_watch(tx.clone());
 
     // Tell the launcher (or the user) where to connect.
@@ -200,10 +169,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         writeln!(out, "ready run={run}")?;
         out.flush()?;
     }
-    eprintln!(
-        "geese-world: run {run} listening on {}",
-        locators.join(", ")
-    );
+    eprintln!("geese-world: run {run} listening on {}", locators.join(", "));
 
     let mut server = Server::new(&session, spec, world, info, gather, gathered, genes);
     let outcome = server.run(&mut rx).await;
@@ -236,10 +202,7 @@ fn spawn_signal_watch(tx: UnboundedSender<Event>) {
         #[cfg(unix)]
         {
             use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut term), Ok(mut int)) = (
-                signal(SignalKind::terminate()),
-                signal(SignalKind::interrupt()),
-            ) else {
+            let (Ok(mut term), Ok(mut int)) = (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) else {
                 return;
             };
             tokio::select! {
@@ -264,11 +227,7 @@ fn body_cells(world: &World) -> Vec<u32> {
 /// Centre cell of every agent (`NO_CELL` when dead).
 fn cells_of(world: &World) -> Vec<u32> {
     let g = world.geometry();
-    world
-        .bodies()
-        .iter()
-        .map(|b| if b.live { g.cell_of(b.pos) } else { NO_CELL })
-        .collect()
+    world.bodies().iter().map(|b| if b.live { g.cell_of(b.pos) } else { NO_CELL }).collect()
 }
 
 /// The intents of the step being gathered. Filled by the subscriber callback on Zenoh's
@@ -405,29 +364,13 @@ impl GeneHub {
     fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>) {
         self.step = step;
         self.hostile = 0;
-        self.cells = cells
-            .into_iter()
-            .map(|(c, expect)| {
-                (
-                    c,
-                    CellAgg {
-                        expect,
-                        got: Vec::new(),
-                        sent: false,
-                    },
-                )
-            })
-            .collect();
+        self.cells =
+            cells.into_iter().map(|(c, expect)| (c, CellAgg { expect, got: Vec::new(), sent: false })).collect();
     }
 
     /// File one batch; returns the aggregate to publish (key, bytes) when the cell is complete.
     fn on_batch(&mut self, key: &str, bytes: &[u8]) -> Option<(String, Vec<u8>)> {
-        let Parsed::Genes {
-            cx,
-            cy,
-            from: Some(from),
-        } = keys::parse(&self.run, key)
-        else {
+        let Parsed::Genes { cx, cy, from: Some(from) } = keys::parse(&self.run, key) else {
             self.hostile += 1;
             return None;
         };
@@ -438,14 +381,10 @@ impl GeneHub {
                 return None;
             }
         };
-        let cell_ok = cx < self.geom.cols()
-            && cy < self.geom.rows()
-            && batch.cell == (cy * self.geom.cols() + cx) as u32;
+        let cell_ok =
+            cx < self.geom.cols() && cy < self.geom.rows() && batch.cell == (cy * self.geom.cols() + cx) as u32;
         if !cell_ok
-            || !batch
-                .genes
-                .iter()
-                .all(|g| from.contains(g.from) && g.step == batch.step)
+            || !batch.genes.iter().all(|g| from.contains(g.from) && g.step == batch.step)
             || !batch.absent.iter().all(|&a| from.contains(a))
         {
             // Wrong cell, or genes of agents the sender does not speak for.
@@ -482,22 +421,11 @@ impl GeneHub {
 
     fn complete(&mut self, cell: u32) -> Option<(String, Vec<u8>)> {
         let agg = self.cells.get_mut(&cell)?;
-        if agg.sent
-            || agg.got.is_empty()
-            || !agg
-                .expect
-                .iter()
-                .all(|r| agg.got.iter().any(|(g, _)| g == r))
-        {
+        if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _)| g == r)) {
             return None;
         }
         agg.sent = true;
-        let mut all = GeneBatch {
-            step: self.step,
-            cell,
-            genes: Vec::new(),
-            absent: Vec::new(),
-        };
+        let mut all = GeneBatch { step: self.step, cell, genes: Vec::new(), absent: Vec::new() };
         for (_, b) in agg.got.drain(..) {
             all.genes.extend(b.genes);
             all.absent.extend(b.absent);
@@ -596,8 +524,7 @@ impl<'a> Server<'a> {
     /// Returns whether the run completed all its steps.
     async fn run(&mut self, rx: &mut UnboundedReceiver<Event>) -> Result<bool> {
         // Join: wait for every expected process.
-        let join_deadline =
-            Instant::now() + Duration::from_millis(self.spec.deadlines.join_ms as u64);
+        let join_deadline = Instant::now() + Duration::from_millis(self.spec.deadlines.join_ms as u64);
         while !self.ready() {
             let left = join_deadline.saturating_duration_since(Instant::now());
             match tokio::time::timeout(left, rx.recv()).await {
@@ -608,11 +535,7 @@ impl<'a> Server<'a> {
                     self.spec.deadlines.join_ms,
                     self.hosts.keys().map(|r| r.len()).sum::<u32>(),
                     self.n,
-                    if self.spec.expect_orchestrator && !self.orchestrator {
-                        ", orchestrator absent"
-                    } else {
-                        ""
-                    }
+                    if self.spec.expect_orchestrator && !self.orchestrator { ", orchestrator absent" } else { "" }
                 ),
             }
             if self.stop {
@@ -620,11 +543,7 @@ impl<'a> Server<'a> {
             }
         }
         self.revive.clear();
-        eprintln!(
-            "geese-world: {} agent processes present, starting {} steps",
-            self.hosts.len(),
-            self.spec.steps
-        );
+        eprintln!("geese-world: {} agent processes present, starting {} steps", self.hosts.len(), self.spec.steps);
         while self.world.step() <= self.spec.steps {
             self.step(rx).await?;
             if self.stop {
@@ -638,13 +557,7 @@ impl<'a> Server<'a> {
         let step = self.world.step();
         // Between steps: revivals and control-plane perturbations.
         for id in std::mem::take(&mut self.revive) {
-            if !self.spec.bare
-                && self
-                    .world
-                    .bodies()
-                    .get(id as usize)
-                    .is_some_and(|b| !b.live)
-            {
+            if !self.spec.bare && self.world.bodies().get(id as usize).is_some_and(|b| !b.live) {
                 self.world.revive(id);
             }
         }
@@ -654,11 +567,7 @@ impl<'a> Server<'a> {
         self.counters = NetCounters::default();
         if let Ok(mut s) = self.info.lock() {
             s.next_step = step;
-            s.cells = if self.spec.bare {
-                Vec::new()
-            } else {
-                body_cells(&self.world)
-            };
+            s.cells = if self.spec.bare { Vec::new() } else { body_cells(&self.world) };
         }
         // Open the gathering before anything goes out: fast answers must find it open.
         {
@@ -691,53 +600,29 @@ impl<'a> Server<'a> {
                 }
                 shared.retain(|_, v| v.len() > 1);
             }
-            self.genes
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .begin(step, shared);
+            self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared);
         }
         // 1. The tick (bare: every step; otherwise when the live set changed), then the
         //    percepts of every occupied cell.
         if self.spec.bare {
-            zenoh_bus::put(
-                self.session,
-                &keys::tick(&self.run),
-                encode(&Tick {
-                    step,
-                    cells: Vec::new(),
-                })?,
-            )
-            .await?;
+            zenoh_bus::put(self.session, &keys::tick(&self.run), encode(&Tick { step, cells: Vec::new() })?).await?;
         } else {
             let cells = cells_of(&self.world);
-            let live: Vec<u32> = cells
-                .iter()
-                .map(|&c| if c == NO_CELL { NO_CELL } else { 0 })
-                .collect();
+            let live: Vec<u32> = cells.iter().map(|&c| if c == NO_CELL { NO_CELL } else { 0 }).collect();
             if self.announced.as_ref() != Some(&live) {
-                zenoh_bus::put(
-                    self.session,
-                    &keys::tick(&self.run),
-                    encode(&Tick { step, cells })?,
-                )
-                .await?;
+                zenoh_bus::put(self.session, &keys::tick(&self.run), encode(&Tick { step, cells })?).await?;
                 self.announced = Some(live);
             }
             for p in self.world.percepts() {
                 let ke = self.percept_key(p.cell);
                 let bytes = encode(&p)?;
-                self.session
-                    .put(ke, bytes)
-                    .congestion_control(CongestionControl::Block)
-                    .await
-                    .map_err(zerr)?;
+                self.session.put(ke, bytes).congestion_control(CongestionControl::Block).await.map_err(zerr)?;
             }
         }
         // 2–3 happen in the agent processes. 4. Gather intents.
         let started = Instant::now();
-        let deadline = tokio::time::Instant::from_std(
-            started + Duration::from_millis(self.spec.deadlines.intent_ms as u64),
-        );
+        let deadline =
+            tokio::time::Instant::from_std(started + Duration::from_millis(self.spec.deadlines.intent_ms as u64));
         loop {
             let pending = self.gather().pending;
             if pending == 0 || self.stop {
@@ -763,9 +648,7 @@ impl<'a> Server<'a> {
         let (mut intents, answered_live, gc) = {
             let mut g = self.gather();
             g.step = 0;
-            let answered_live = (0..self.n)
-                .filter(|&i| g.expected[i] && g.answered[i])
-                .count();
+            let answered_live = (0..self.n).filter(|&i| g.expected[i] && g.answered[i]).count();
             let intents = std::mem::replace(&mut g.intents, vec![None; self.n]);
             (intents, answered_live, g.counters)
         };
@@ -793,17 +676,12 @@ impl<'a> Server<'a> {
         let mut report = self.world.resolve(&intents);
         if self.spec.bare {
             // No world to speak of: live = present, missing = not answered.
-            let live = (0..self.n)
-                .filter(|&i| self.hosts.keys().any(|r| r.contains(i as u32)))
-                .count();
+            let live = (0..self.n).filter(|&i| self.hosts.keys().any(|r| r.contains(i as u32))).count();
             report.live_agents = live as u32;
             report.missing_intents = (live - answered_live.min(live)) as u32;
         }
         self.counters.processes = self.hosts.len() as u32;
-        let msg = ReportMsg::Step(NetReport {
-            report,
-            net: self.counters,
-        });
+        let msg = ReportMsg::Step(NetReport { report, net: self.counters });
         zenoh_bus::put(self.session, &keys::report(&self.run), encode(&msg)?).await?;
         self.steps_done = step;
         Ok(())
@@ -814,10 +692,7 @@ impl<'a> Server<'a> {
     fn percept_key(&mut self, cell: u32) -> String {
         let (cx, cy) = self.world.geometry().cell_col_row(cell);
         let run = &self.run;
-        self.percept_keys
-            .entry(cell)
-            .or_insert_with(|| keys::cell_percept(run, cx, cy))
-            .clone()
+        self.percept_keys.entry(cell).or_insert_with(|| keys::cell_percept(run, cx, cy)).clone()
     }
 
     fn handle(&mut self, ev: Event, step: u64) {
@@ -826,8 +701,7 @@ impl<'a> Server<'a> {
                 Parsed::AgentsPresence { agents } => {
                     if alive {
                         *self.hosts.entry(agents).or_insert(0) += 1;
-                        self.revive
-                            .extend(agents.ids().filter(|&id| (id as usize) < self.n));
+                        self.revive.extend(agents.ids().filter(|&id| (id as usize) < self.n));
                     } else {
                         if let Some(c) = self.hosts.get_mut(&agents) {
                             *c -= 1;
@@ -835,17 +709,9 @@ impl<'a> Server<'a> {
                                 self.hosts.remove(&agents);
                             }
                         }
-                        let ready = self
-                            .genes
-                            .lock()
-                            .unwrap_or_else(|e| e.into_inner())
-                            .forget(agents);
+                        let ready = self.genes.lock().unwrap_or_else(|e| e.into_inner()).forget(agents);
                         for (key, bytes) in ready {
-                            let _ = self
-                                .session
-                                .put(key, bytes)
-                                .congestion_control(CongestionControl::Block)
-                                .wait();
+                            let _ = self.session.put(key, bytes).congestion_control(CongestionControl::Block).wait();
                         }
                         // Its agents stop here: bodies idle, carried items dropped.
                         for id in agents.ids().filter(|&id| (id as usize) < self.n) {
