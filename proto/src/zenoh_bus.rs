@@ -292,3 +292,34 @@ mod tests {
         assert_eq!(round.to_args().len(), 6);
     }
 }
+
+/// Wait for SIGTERM or SIGINT (Ctrl-C elsewhere): the graceful-shutdown future every
+/// GEESE process passes to its main loop.
+pub async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let (Ok(mut term), Ok(mut int)) = (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) else {
+            // Without signal handlers the process is still ended by the launcher's kill.
+            return std::future::pending().await;
+        };
+        tokio::select! {
+            _ = term.recv() => {}
+            _ = int.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+/// A Zenoh error as a plain `std::error::Error`, so binaries can use `?` into `anyhow`.
+#[derive(Debug, thiserror::Error)]
+#[error("zenoh: {0}")]
+pub struct ZenohError(pub String);
+
+/// Wrap a Zenoh error for a binary's error chain.
+pub fn zerr(e: zenoh::Error) -> ZenohError {
+    ZenohError(e.to_string())
+}

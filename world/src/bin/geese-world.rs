@@ -194,26 +194,12 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
 }
 
 fn zerr(e: zenoh::Error) -> anyhow::Error {
-    anyhow::anyhow!("zenoh: {e}")
+    anyhow::Error::new(geese_proto::zenoh_bus::zerr(e))
 }
 
 fn spawn_signal_watch(tx: UnboundedSender<Event>) {
     tokio::spawn(async move {
-        #[cfg(unix)]
-        {
-            use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut term), Ok(mut int)) = (signal(SignalKind::terminate()), signal(SignalKind::interrupt())) else {
-                return;
-            };
-            tokio::select! {
-                _ = term.recv() => {}
-                _ = int.recv() => {}
-            }
-        }
-        #[cfg(not(unix))]
-        {
-            let _ = tokio::signal::ctrl_c().await;
-        }
+        geese_proto::zenoh_bus::shutdown_signal().await;
         let _ = tx.send(Event::Signal);
     });
 }
