@@ -86,6 +86,7 @@ fn step_reports(r: &[NetReport]) -> Vec<StepReport> {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
     // Paper layout: every agent starts at the hub, so genes cross processes from step 1.
     let cfg = config(20, 300, 5, Layout::Paper);
@@ -103,6 +104,7 @@ fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn hosted_agents_and_perturbations_equal_in_process() {
     // Three processes hosting 8 agents each, small cells (agents change cell often),
     // and perturbations that kill agents and switch lateral transfer off and on.
@@ -129,6 +131,7 @@ fn hosted_agents_and_perturbations_equal_in_process() {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn gene_loss_half_is_seeded_and_nothing_deadlocks_under_loss() {
     let mut cfg = config(20, 300, 3, Layout::Paper);
     cfg.gene_loss = 0.5;
@@ -162,6 +165,7 @@ fn gene_loss_half_is_seeded_and_nothing_deadlocks_under_loss() {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
     // Long enough that a restarted process has time to start even on a loaded machine.
     let cfg = config(20, 1500, 7, Layout::Reference);
@@ -213,6 +217,7 @@ fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
     use geese_proto::keys::{self, AgentRange};
     use geese_proto::net::{GeneBatch, IntentBatch};
@@ -320,6 +325,7 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn geese_run_processes_writes_the_same_csv_and_leaves_no_orphans() {
     let dir = tempfile::tempdir().expect("tempdir");
     let geese = geese_tests::bin_path("geese-orchestrator", "geese");
@@ -408,6 +414,7 @@ fn wait_exit(child: &mut std::process::Child, within: Duration) -> bool {
 }
 
 #[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn ctrl_c_or_sigkill_of_the_launcher_leaves_no_orphans() {
     // Ctrl-C (SIGINT to the launcher only): it stops the world and kills the rest.
     let dir = tempfile::tempdir().expect("tempdir");
