@@ -313,15 +313,7 @@ pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSp
 
 /// Running summary, exactly as the in-process driver keeps it.
 pub fn record(s: &mut TrialSummary, threshold: f64, rep: &geese_proto::StepReport) {
-    s.steps = rep.step;
-    s.final_task_pct = rep.task_pct;
-    s.max_task_pct = s.max_task_pct.max(rep.task_pct);
-    if s.first_step_at_threshold.is_none() && rep.task_pct >= threshold {
-        s.first_step_at_threshold = Some(rep.step);
-    }
-    s.success |= rep.task_pct > threshold;
-    s.genetic_steps += rep.genetic_steps as u64;
-    s.stagnation_steps += rep.stagnation_steps as u64;
+    s.record(threshold, rep);
 }
 
 /// Run `spec` as separate processes; `observe` sees every step report (and may kill or
@@ -458,17 +450,7 @@ async fn run_net_async(
     let processes = swarm.agents.len() as u32;
 
     let c = &spec.config;
-    let mut summary = TrialSummary {
-        seed: c.seed,
-        steps: 0,
-        final_task_pct: 0.0,
-        max_task_pct: 0.0,
-        first_step_at_threshold: None,
-        success: false,
-        genetic_steps: 0,
-        stagnation_steps: 0,
-        wall_seconds: 0.0,
-    };
+    let mut summary = TrialSummary::new(c.seed);
     let mut first_report: Option<Instant> = None;
     let mut last_report = Instant::now();
     let mut reports = 0u64;

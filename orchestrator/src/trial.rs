@@ -27,6 +27,36 @@ pub struct TrialSummary {
     pub wall_seconds: f64,
 }
 
+impl TrialSummary {
+    /// An empty summary for a trial of run seed `seed`.
+    pub fn new(seed: u64) -> Self {
+        TrialSummary {
+            seed,
+            steps: 0,
+            final_task_pct: 0.0,
+            max_task_pct: 0.0,
+            first_step_at_threshold: None,
+            success: false,
+            genetic_steps: 0,
+            stagnation_steps: 0,
+            wall_seconds: 0.0,
+        }
+    }
+
+    /// Fold one step report in; every driver (in-process, Zenoh) keeps it this way.
+    pub fn record(&mut self, threshold: f64, rep: &StepReport) {
+        self.steps = rep.step;
+        self.final_task_pct = rep.task_pct;
+        self.max_task_pct = self.max_task_pct.max(rep.task_pct);
+        if self.first_step_at_threshold.is_none() && rep.task_pct >= threshold {
+            self.first_step_at_threshold = Some(rep.step);
+        }
+        self.success |= rep.task_pct > threshold;
+        self.genetic_steps += rep.genetic_steps as u64;
+        self.stagnation_steps += rep.stagnation_steps as u64;
+    }
+}
+
 /// A world and its learners, stepped in lock-step.
 pub struct Trial {
     pub world: World,
@@ -55,17 +85,7 @@ impl Trial {
             genes: Mailboxes::new(geom.cell_count()),
             intents: vec![None; cfg.world.agents as usize],
             threshold: cfg.threshold,
-            summary: TrialSummary {
-                seed: cfg.seed,
-                steps: 0,
-                final_task_pct: 0.0,
-                max_task_pct: 0.0,
-                first_step_at_threshold: None,
-                success: false,
-                genetic_steps: 0,
-                stagnation_steps: 0,
-                wall_seconds: 0.0,
-            },
+            summary: TrialSummary::new(cfg.seed),
             world,
             agents,
         })
@@ -106,16 +126,7 @@ impl Trial {
     }
 
     fn record(&mut self, rep: &StepReport) {
-        let s = &mut self.summary;
-        s.steps = rep.step;
-        s.final_task_pct = rep.task_pct;
-        s.max_task_pct = s.max_task_pct.max(rep.task_pct);
-        if s.first_step_at_threshold.is_none() && rep.task_pct >= self.threshold {
-            s.first_step_at_threshold = Some(rep.step);
-        }
-        s.success |= rep.task_pct > self.threshold;
-        s.genetic_steps += rep.genetic_steps as u64;
-        s.stagnation_steps += rep.stagnation_steps as u64;
+        self.summary.record(self.threshold, rep);
     }
 
     pub fn summary(&self) -> &TrialSummary {
