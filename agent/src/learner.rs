@@ -163,6 +163,35 @@ pub struct Learner {
     regime: Regime,
     expected: Vec<AgentId>,
     have_percept: bool,
+    received: ReceivedGenes,
+}
+
+/// The last few received genomes with their mapping. A cell-mate offers the same gene
+/// step after step until it evolves, and genes spread, so most arrivals were seen
+/// recently: mapping them again would be most of the cost of lateral transfer.
+#[derive(Default)]
+struct ReceivedGenes {
+    recent: Vec<Individual>,
+    next: usize,
+}
+
+impl ReceivedGenes {
+    const CAPACITY: usize = 8;
+
+    /// The evaluated individual of `genome` (a copy; its fitness is the caller's to set).
+    fn evaluate(&mut self, grammar: &Grammar, genome: &[u32], params: &ge::GeParams) -> Individual {
+        if let Some(ind) = self.recent.iter().find(|i| i.genome == genome) {
+            return ind.clone();
+        }
+        let ind = ge::evaluate(grammar, genome.to_vec(), params);
+        if self.recent.len() < Self::CAPACITY {
+            self.recent.push(ind.clone());
+        } else {
+            self.recent[self.next] = ind.clone();
+            self.next = (self.next + 1) % Self::CAPACITY;
+        }
+        ind
+    }
 }
 
 impl Learner {
@@ -209,6 +238,7 @@ impl Learner {
             regime: Regime::default(),
             expected: Vec::new(),
             have_percept: false,
+            received: ReceivedGenes::default(),
             view,
             cfg,
             grammar,
@@ -340,7 +370,7 @@ impl Learner {
                 let ind = match s {
                     None => self.gene.clone(),
                     Some(g) => {
-                        let mut ind = ge::evaluate(&self.grammar, g.genome.clone(), &self.cfg.ge);
+                        let mut ind = self.received.evaluate(&self.grammar, &g.genome, &self.cfg.ge);
                         if !ind.valid() {
                             *lost += 1;
                             continue;

@@ -167,6 +167,218 @@ fn count(phenotype: &str) -> Option<Counts> {
     (depth == 0 && root_done).then_some(c)
 }
 
+/// One token of a terminal run, pre-scanned for [`DiversityScan`]: the same tokens
+/// [`count`] meets in a phenotype, with names already checked and classified, so the
+/// genetic step can score an offspring from its terminal runs without building the
+/// phenotype string.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) enum Tok {
+    /// Text between tags: whether it is all white space, its part before the first `_`
+    /// (the only part that can name a behaviour), whether it contains a `_`, and the
+    /// class of that part taken alone (behaviour index, or 9 = another name).
+    Text { ws: bool, prefix: Box<[u8]>, underscore: bool, class: u8 },
+    /// A start tag; `control` for `Sequence`/`Selector`.
+    Open { control: bool, self_closing: bool },
+    /// An end tag with a valid name.
+    Close,
+    /// A `[?…?]` declaration.
+    Pi,
+    /// Something [`count`] rejects (empty tag, `[!…]`, bad name).
+    Bad,
+}
+
+/// Class of a name: its behaviour index, or 9 for any other name.
+fn class_of(name: &[u8]) -> u8 {
+    behaviour_index(name).map_or(9, |i| i as u8)
+}
+
+/// Tokenise one terminal run exactly as [`count`] scans it. `None` when the run ends
+/// inside a tag: a tag could then span runs, and the grammar is scored from strings.
+pub(crate) fn tokenize_run(text: &str) -> Option<Vec<Tok>> {
+    let b = text.as_bytes();
+    let n = b.len();
+    let mut toks = Vec::new();
+    let mut i = 0usize;
+    while i < n {
+        let text_start = i;
+        while i < n && !is_tag_open(b[i]) {
+            i += 1;
+        }
+        if i > text_start {
+            let t = &b[text_start..i];
+            let cut = t.iter().position(|&c| c == b'_');
+            let prefix = &t[..cut.unwrap_or(t.len())];
+            toks.push(Tok::Text {
+                ws: t.iter().all(|&c| is_xml_space(c)),
+                prefix: prefix.into(),
+                underscore: cut.is_some(),
+                class: class_of(prefix),
+            });
+        }
+        if i >= n {
+            break;
+        }
+        let inner_start = i + 1;
+        i = inner_start;
+        while i < n && b[i] != b']' && b[i] != b'>' {
+            i += 1;
+        }
+        if i >= n {
+            return None;
+        }
+        let inner = &b[inner_start..i];
+        i += 1;
+        toks.push(match inner.first() {
+            None | Some(b'!') => Tok::Bad,
+            Some(b'?') if inner.len() < 2 || inner[inner.len() - 1] != b'?' => Tok::Bad,
+            Some(b'?') => Tok::Pi,
+            Some(b'/') => {
+                let mut name = &inner[1..];
+                while let [rest @ .., last] = name {
+                    if !is_xml_space(*last) {
+                        break;
+                    }
+                    name = rest;
+                }
+                if valid_name(name) {
+                    Tok::Close
+                } else {
+                    Tok::Bad
+                }
+            }
+            Some(_) => {
+                let (body, self_closing) = match inner {
+                    [body @ .., b'/'] => (body, true),
+                    _ => (inner, false),
+                };
+                let name_len = body.iter().position(|&c| is_xml_space(c)).unwrap_or(body.len());
+                let name = &body[..name_len];
+                if valid_name(name) {
+                    Tok::Open { control: name == b"Sequence" || name == b"Selector", self_closing }
+                } else {
+                    Tok::Bad
+                }
+            }
+        });
+    }
+    Some(toks)
+}
+
+/// The [`count`] state machine fed with pre-scanned tokens, run after run, as the
+/// mapper emits them. Reusable: [`DiversityScan::reset`] keeps the name buffer.
+#[derive(Debug, Default, Clone)]
+pub(crate) struct DiversityScan {
+    counts: Counts,
+    depth: u32,
+    root_done: bool,
+    bad: bool,
+    /// Reading the text of a non-control element.
+    collecting: bool,
+    /// A `_` ended the name part of that text.
+    name_closed: bool,
+    /// Text tokens that contributed to the name so far.
+    parts: u32,
+    class: u8,
+    name: Vec<u8>,
+}
+
+impl DiversityScan {
+    pub(crate) fn reset(&mut self) {
+        self.counts = Counts::default();
+        self.depth = 0;
+        self.root_done = false;
+        self.bad = false;
+        self.collecting = false;
+    }
+
+    fn end_text(&mut self) {
+        if !self.collecting {
+            return;
+        }
+        self.collecting = false;
+        let class = match self.parts {
+            0 => 9,
+            1 => self.class,
+            _ => class_of(&self.name),
+        };
+        self.counts.total += 1;
+        match self.counts.per_behaviour.get_mut(class as usize) {
+            Some(n) => *n += 1,
+            None => self.counts.other = true,
+        }
+    }
+
+    #[inline]
+    pub(crate) fn feed(&mut self, toks: &[Tok]) {
+        for t in toks {
+            match t {
+                Tok::Text { ws, prefix, underscore, class } => {
+                    if self.depth == 0 && !ws {
+                        self.bad = true;
+                    }
+                    if self.collecting && !self.name_closed {
+                        if self.parts == 0 {
+                            self.class = *class;
+                            self.name.clear();
+                        }
+                        self.name.extend_from_slice(prefix);
+                        self.parts += 1;
+                        self.name_closed = *underscore;
+                    }
+                }
+                Tok::Open { control, self_closing } => {
+                    self.end_text();
+                    if self.root_done {
+                        self.bad = true;
+                    }
+                    if !control {
+                        if *self_closing {
+                            self.collecting = true;
+                            self.parts = 0;
+                            self.end_text();
+                        } else {
+                            self.collecting = true;
+                            self.name_closed = false;
+                            self.parts = 0;
+                        }
+                    }
+                    if *self_closing {
+                        self.root_done = self.depth == 0;
+                    } else {
+                        self.depth += 1;
+                    }
+                }
+                Tok::Close => {
+                    self.end_text();
+                    if self.depth == 0 {
+                        self.bad = true;
+                    } else {
+                        self.depth -= 1;
+                        self.root_done = self.depth == 0;
+                    }
+                }
+                Tok::Pi => {
+                    self.end_text();
+                    if self.depth > 0 {
+                        self.bad = true;
+                    }
+                }
+                Tok::Bad => self.bad = true,
+            }
+        }
+    }
+
+    /// D of everything fed since the last reset (NaN if not well-formed).
+    pub(crate) fn finish(&mut self) -> f64 {
+        self.end_text();
+        if self.bad || self.depth != 0 || !self.root_done {
+            f64::NAN
+        } else {
+            score(&self.counts)
+        }
+    }
+}
+
 /// Diversity D of a phenotype string (§5.5), rounded to 4 decimals like Python's
 /// `round(x, 4)`. NaN if the string is not well-formed.
 ///

@@ -24,6 +24,8 @@ use std::collections::HashMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use super::compiled::Compiled;
+
 /// One symbol of an alternative: an index into [`Grammar::terminal`] or into the rules.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Symbol {
@@ -126,6 +128,8 @@ pub struct Grammar {
     by_name: HashMap<String, u32>,
     max_arity: u32,
     max_alternatives: usize,
+    /// Runs-and-non-terminals form for the mapper's hot path.
+    compiled: Compiled,
 }
 
 /// Why a grammar text (or file) was rejected. Lines and columns are 1-based.
@@ -281,8 +285,10 @@ impl Grammar {
         }
 
         let by_name = index.into_iter().map(|(k, v)| (k, v as u32)).collect();
-        let mut g = Grammar { rules, terminals, by_name, max_arity: 0, max_alternatives: 0 };
+        let mut g =
+            Grammar { rules, terminals, by_name, max_arity: 0, max_alternatives: 0, compiled: Compiled::default() };
         g.precompute()?;
+        g.compiled = Compiled::build(&g);
         Ok(g)
     }
 
@@ -367,6 +373,9 @@ impl Grammar {
     /// Rule by name, with or without angle brackets.
     pub fn rule_by_name(&self, name: &str) -> Option<&Rule> {
         self.rule_id(name).map(|id| self.rule(id))
+    }
+    pub(crate) fn compiled(&self) -> &Compiled {
+        &self.compiled
     }
     /// Terminal string by id. Panics on an id not produced by this grammar.
     pub fn terminal(&self, id: u32) -> &str {

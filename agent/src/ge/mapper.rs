@@ -14,6 +14,8 @@
 //! pending, and a symbol deeper than the limit only invalidates the individual if further
 //! symbols remain).
 
+use super::compiled::{Compiled, NoOutput, RunSink, TextAndScore, TextOutput};
+use super::diversity::{diversity, DiversityScan};
 use super::grammar::{fast_mod, pack_symbol, Grammar, Symbol, PACKED_NT};
 
 /// Limits of one mapping (PonyGE2 `MAX_TREE_DEPTH`, `MAX_WRAPS`).
@@ -55,15 +57,20 @@ pub struct Mapping {
 #[derive(Debug, Clone, Default)]
 pub struct Mapper {
     stack: Vec<u64>,
+    scan: DiversityScan,
+    text: String,
 }
 
 impl Mapper {
     pub fn new() -> Mapper {
-        Mapper { stack: Vec::with_capacity(64) }
+        Mapper { stack: Vec::with_capacity(64), scan: DiversityScan::default(), text: String::new() }
     }
 
     /// Map without building the phenotype.
     pub fn map_stats(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> MapStats {
+        if limits.max_wraps == 0 {
+            return self.run_runs(grammar.compiled(), grammar.start(), genome, limits, &mut NoOutput);
+        }
         self.run::<false>(grammar, genome, limits, &mut String::new())
     }
 
@@ -71,7 +78,54 @@ impl Mapper {
     /// `out` holds the partial output; ignore it.
     pub fn map_into(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, out: &mut String) -> MapStats {
         out.clear();
+        if limits.max_wraps == 0 {
+            return self.run_runs(grammar.compiled(), grammar.start(), genome, limits, &mut TextOutput(out));
+        }
         self.run::<true>(grammar, genome, limits, out)
+    }
+
+    /// Map and score: the statistics and the diversity D of the phenotype (NaN when the
+    /// mapping is invalid), without building the phenotype string when the grammar
+    /// allows it (see [`super::compiled`]). Equal, bit for bit, to
+    /// [`super::diversity`] of [`Mapper::map_into`]'s output.
+    pub fn map_scored(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> (MapStats, f64) {
+        let c = grammar.compiled();
+        if limits.max_wraps == 0 && c.scored_from_runs {
+            let mut scan = std::mem::take(&mut self.scan);
+            scan.reset();
+            let st = self.run_runs(c, grammar.start(), genome, limits, &mut scan);
+            let d = if st.valid { scan.finish() } else { f64::NAN };
+            self.scan = scan;
+            return (st, d);
+        }
+        let mut out = std::mem::take(&mut self.text);
+        let st = self.map_into(grammar, genome, limits, &mut out);
+        let d = if st.valid { diversity(&out) } else { f64::NAN };
+        self.text = out;
+        (st, d)
+    }
+
+    /// Map, write the phenotype into `out` (cleared first) and score it, in one pass
+    /// where the grammar allows it; D is NaN when the mapping is invalid.
+    pub fn map_into_scored(
+        &mut self,
+        grammar: &Grammar,
+        genome: &[u32],
+        limits: MapLimits,
+        out: &mut String,
+    ) -> (MapStats, f64) {
+        let c = grammar.compiled();
+        out.clear();
+        if limits.max_wraps == 0 && c.scored_from_runs {
+            let mut scan = std::mem::take(&mut self.scan);
+            scan.reset();
+            let st = self.run_runs(c, grammar.start(), genome, limits, &mut TextAndScore(out, &mut scan));
+            let d = if st.valid { scan.finish() } else { f64::NAN };
+            self.scan = scan;
+            return (st, d);
+        }
+        let st = self.map_into(grammar, genome, limits, out);
+        (st, if st.valid { diversity(out) } else { f64::NAN })
     }
 
     /// Map and return an owned [`Mapping`].
@@ -79,6 +133,88 @@ impl Mapper {
         let mut out = String::new();
         let st = self.map_into(grammar, genome, limits, &mut out);
         Mapping { valid: st.valid, used_codons: st.used_codons, depth: st.depth, phenotype: st.valid.then_some(out) }
+    }
+
+    /// The literal loop, for tests that check the fast path against it.
+    #[cfg(test)]
+    pub(crate) fn map_literal(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, out: &mut String) -> MapStats {
+        out.clear();
+        self.run::<true>(grammar, genome, limits, out)
+    }
+
+    /// The PonyGE2 loop for `max_wraps = 0` over runs of terminals ([`super::compiled`]):
+    /// same validity, used codons, depth and output as [`Mapper::run`] symbol by symbol.
+    ///
+    /// How the literal loop's rules carry over: a run is popped in one go because the
+    /// literal loop's checks cannot change between its terminals (no codon is read), except
+    /// the depth cut-off, which stops after the first terminal of a run deeper than the
+    /// limit. With no wraps allowed, the first iteration that finds every codon used while
+    /// a non-terminal is pending is the last: it processes one symbol and stops.
+    fn run_runs<S: RunSink>(
+        &mut self,
+        c: &Compiled,
+        start: u32,
+        genome: &[u32],
+        limits: MapLimits,
+        sink: &mut S,
+    ) -> MapStats {
+        let n = genome.len();
+        if n == 0 {
+            return MapStats { valid: false, used_codons: 0, depth: 1 };
+        }
+        let stack = &mut self.stack;
+        stack.clear();
+        stack.push(PACKED_NT | u64::from(start) | (1 << 32));
+        let depth_limit = if limits.max_tree_depth == 0 { usize::MAX } else { limits.max_tree_depth };
+        let mut pending_nts = 1usize;
+        let mut used = 0usize;
+        let mut max_depth = 1usize;
+        while let Some(&entry) = stack.last() {
+            if max_depth > depth_limit {
+                break;
+            }
+            let d = (entry >> 32) as usize;
+            let code = entry as u32;
+            if used == n && pending_nts > 0 {
+                // The wrap iteration: one more symbol, then stop.
+                stack.pop();
+                max_depth = max_depth.max(d);
+                if u64::from(code) & PACKED_NT != 0 {
+                    let rule = &c.rules[(u64::from(code) & !PACKED_NT) as usize];
+                    let alt = &rule.alts[fast_mod(genome[0], rule.magic, rule.alts.len() as u32) as usize];
+                    used += 1;
+                    let child_depth = ((d + 1) as u64) << 32;
+                    stack.extend(alt.items_rev.iter().map(|&x| x | child_depth));
+                } else {
+                    // A terminal is popped; the pending non-terminal keeps the stack
+                    // non-empty, so the mapping is invalid.
+                    stack.push(entry);
+                }
+                break;
+            }
+            stack.pop();
+            if d > max_depth {
+                max_depth = d;
+            }
+            if u64::from(code) & PACKED_NT == 0 {
+                let run = &c.runs[code as usize];
+                if d > depth_limit && run.terminals > 1 {
+                    // The literal loop stops after this run's first terminal.
+                    stack.push(entry);
+                    break;
+                }
+                sink.run(run);
+                continue;
+            }
+            pending_nts -= 1;
+            let rule = &c.rules[(u64::from(code) & !PACKED_NT) as usize];
+            let alt = &rule.alts[fast_mod(genome[used], rule.magic, rule.alts.len() as u32) as usize];
+            used += 1;
+            let child_depth = ((d + 1) as u64) << 32;
+            stack.extend(alt.items_rev.iter().map(|&x| x | child_depth));
+            pending_nts += alt.nt_count as usize;
+        }
+        MapStats { valid: stack.is_empty(), used_codons: used, depth: max_depth }
     }
 
     fn run<const OUT: bool>(
@@ -274,6 +410,67 @@ pub(crate) mod tests {
         let mut buf = String::from("garbage");
         assert_eq!(mapper.map_into(g, genome, MapLimits::default(), &mut buf), st);
         assert_eq!(buf, phenotype);
+    }
+
+    /// Shipped grammars plus small ones whose tags span terminals, contain odd text or
+    /// recurse deeply, for the fast-path equivalence tests.
+    fn equivalence_grammars() -> Vec<Grammar> {
+        let mut v: Vec<Grammar> = crate::grammars::BUILTIN.iter().map(|(_, t)| grammar(t)).collect();
+        for text in [
+            "<s> ::= [Sequence]<a>[/Sequence]\n<a> ::= [Act]<n>[/Act]<a> | [Act]<n>[/Act] | [Seq<t>\n<t> ::= uence][/Sequence]\n<n> ::= Explore_0 | Move<m> | _x | IsCarrying\n<m> ::= Away_Hub | Towards | Away",
+            "<s> ::= <x>\n<x> ::= [Act]Move<y>[/Act] | [Selector]<x><x>[/Selector] | [Act/] | [Selector] <x> [/Selector]\n<y> ::= Away|Towards_Hub|Away_|<y><y>",
+            "<e> ::= <e>+<e> | (<e>) | x | y",
+        ] {
+            v.push(grammar(text));
+        }
+        v
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(768))]
+
+        /// The runs-based fast path gives exactly the literal loop's validity, used codons,
+        /// depth and phenotype, and `map_scored` gives D of that phenotype, bit for bit.
+        #[test]
+        fn fast_path_equals_literal_loop(
+            which in 0usize..14,
+            genome in proptest::collection::vec(0u32..2001, 0..120),
+            depth in prop_oneof![Just(10usize), Just(0usize), 1usize..14],
+        ) {
+            let gs = equivalence_grammars();
+            let g = &gs[which % gs.len()];
+            let limits = MapLimits { max_tree_depth: depth, max_wraps: 0 };
+            let mut m = Mapper::new();
+            let (mut lit, mut fast) = (String::new(), String::new());
+            let a = m.map_literal(g, &genome, limits, &mut lit);
+            let b = m.map_into(g, &genome, limits, &mut fast);
+            prop_assert_eq!(a, b);
+            if a.valid {
+                prop_assert_eq!(&lit, &fast);
+            }
+            prop_assert_eq!(m.map_stats(g, &genome, limits), a);
+            let (st, d) = m.map_scored(g, &genome, limits);
+            prop_assert_eq!(st, a);
+            let mut both = String::new();
+            let (st2, d2) = m.map_into_scored(g, &genome, limits, &mut both);
+            prop_assert_eq!(st2, a);
+            prop_assert!(d2.to_bits() == d.to_bits() || (d.is_nan() && d2.is_nan()));
+            if a.valid {
+                prop_assert_eq!(&both, &lit);
+            }
+            let want = if a.valid { diversity(&lit) } else { f64::NAN };
+            prop_assert!(d.to_bits() == want.to_bits() || (d.is_nan() && want.is_nan()), "D {} vs {}", d, want);
+        }
+    }
+
+    #[test]
+    fn grammars_with_split_tags_are_scored_from_strings() {
+        let gs = equivalence_grammars();
+        let split = &gs[crate::grammars::BUILTIN.len()];
+        assert!(!split.compiled().scored_from_runs);
+        for g in &gs[..crate::grammars::BUILTIN.len()] {
+            assert!(g.compiled().scored_from_runs, "shipped grammars are scored from runs");
+        }
     }
 
     #[test]

@@ -11,6 +11,7 @@
 //! - [`mod@diversity`]: the `bt_diversity` fitness D of §5.5.
 //! - [`operators`]: parameters, individuals and one genetic step (§5.1, §5.6).
 
+mod compiled;
 pub mod diversity;
 pub mod grammar;
 pub mod init;

@@ -173,9 +173,8 @@ impl Default for Individual {
 /// Map `genome` and give the individual its diversity D (NaN when invalid).
 pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
     let mut buf = String::with_capacity(256);
-    let st = Mapper::new().map_into(grammar, &genome, params.map_limits(), &mut buf);
+    let (st, fitness) = Mapper::new().map_into_scored(grammar, &genome, params.map_limits(), &mut buf);
     if st.valid {
-        let fitness = diversity(&buf);
         Individual { genome, phenotype: Some(Arc::from(buf)), used_codons: st.used_codons, depth: st.depth, fitness }
     } else {
         Individual { genome, ..Individual::default() }
@@ -373,13 +372,11 @@ fn step<R: Rng + ?Sized>(
 
     // 3–4. Mutation within the used codons, remapping, evaluation with D; remember the
     // first best offspring (= first after a stable descending sort).
-    let mut cur = String::with_capacity(256);
-    let mut best_buf = String::with_capacity(256);
     let mut best: Option<(usize, f64, MapStats)> = None;
     for (k, kid) in kids.iter().enumerate() {
         let eff = if kid.stats.valid { kid.len.min(kid.stats.used_codons) } else { kid.len };
         let genome = &mut arena[kid.start..kid.start + kid.len];
-        let mut st;
+        let (mut st, mut fitness);
         let mut tries = 0usize;
         loop {
             for c in genome[..eff].iter_mut() {
@@ -387,15 +384,15 @@ fn step<R: Rng + ?Sized>(
                     *c = rng.random_range(0..=params.codon_size);
                 }
             }
-            st = mapper.map_into(grammar, genome, limits, &mut cur);
+            (st, fitness) = mapper.map_scored(grammar, genome, limits);
             tries += 1;
             if !too_deep(&st, params.max_tree_depth) || tries >= MAX_REMUTATIONS || eff == 0 {
                 break;
             }
         }
-        let fitness = if st.valid { diversity(&cur) } else { f64::NAN };
         if !st.valid {
             stats.invalid_offspring += 1;
+            fitness = f64::NAN;
         }
         let better = match best {
             None => true,
@@ -403,7 +400,6 @@ fn step<R: Rng + ?Sized>(
         };
         if better {
             best = Some((k, fitness, st));
-            std::mem::swap(&mut cur, &mut best_buf);
         }
     }
 
@@ -436,9 +432,12 @@ fn step<R: Rng + ?Sized>(
             let kid = kids[k];
             let genome = arena[kid.start..kid.start + kid.len].to_vec();
             if st.valid {
+                // Only the winner's phenotype is ever written out.
+                let mut text = String::with_capacity(256);
+                mapper.map_into(grammar, &genome, limits, &mut text);
                 Individual {
                     genome,
-                    phenotype: Some(Arc::from(best_buf.as_str())),
+                    phenotype: Some(Arc::from(text)),
                     used_codons: st.used_codons,
                     depth: st.depth,
                     fitness,
