@@ -183,7 +183,7 @@ impl ReceivedGenes {
         if let Some(ind) = self.recent.iter().find(|i| i.genome == genome) {
             return ind.clone();
         }
-        let ind = ge::evaluate(grammar, genome.to_vec(), params);
+        let ind = ge::evaluate_stats(grammar, genome.to_vec(), params);
         if self.recent.len() < Self::CAPACITY {
             self.recent.push(ind.clone());
         } else {
@@ -390,6 +390,7 @@ impl Learner {
         let winner = ge::genetic_step(&self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge);
         self.pool.clear();
         let Ok(mut winner) = winner else { return };
+        winner.materialize(&self.grammar, &self.cfg.ge);
         let tree = match build_tree(&winner) {
             Ok(t) => t,
             Err(_) => return,

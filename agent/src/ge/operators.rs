@@ -146,7 +146,10 @@ impl From<&GeParams> for MapLimits {
 #[derive(Debug, Clone)]
 pub struct Individual {
     pub genome: Vec<u32>,
-    /// The phenotype string; `None` for an invalid individual.
+    /// Whether the genome maps to a phenotype.
+    pub valid: bool,
+    /// The phenotype string: `None` for an invalid individual, and for a valid one made
+    /// by [`evaluate_stats`] until [`Individual::materialize`] writes it.
     pub phenotype: Option<Arc<str>>,
     /// Codons used by the mapping (0 when invalid).
     pub used_codons: usize,
@@ -159,14 +162,27 @@ pub struct Individual {
 impl Individual {
     /// Whether the genome mapped to a phenotype.
     pub fn valid(&self) -> bool {
-        self.phenotype.is_some()
+        self.valid
+    }
+
+    /// Write the phenotype of a valid individual if it is not there yet (see
+    /// [`evaluate_stats`]); returns it (`None` when invalid).
+    pub fn materialize(&mut self, grammar: &Grammar, params: &GeParams) -> Option<&Arc<str>> {
+        if self.valid && self.phenotype.is_none() {
+            let mut text = String::with_capacity(256);
+            let st = Mapper::new().map_into(grammar, &self.genome, params.map_limits(), &mut text);
+            if st.valid {
+                self.phenotype = Some(Arc::from(text));
+            }
+        }
+        self.phenotype.as_ref()
     }
 }
 
 impl Default for Individual {
     /// An empty, invalid individual.
     fn default() -> Self {
-        Individual { genome: Vec::new(), phenotype: None, used_codons: 0, depth: 0, fitness: f64::NAN }
+        Individual { genome: Vec::new(), valid: false, phenotype: None, used_codons: 0, depth: 0, fitness: f64::NAN }
     }
 }
 
@@ -175,9 +191,32 @@ pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Indiv
     let mut buf = String::with_capacity(256);
     let (st, fitness) = Mapper::new().map_into_scored(grammar, &genome, params.map_limits(), &mut buf);
     if st.valid {
-        Individual { genome, phenotype: Some(Arc::from(buf)), used_codons: st.used_codons, depth: st.depth, fitness }
+        Individual {
+            genome,
+            valid: true,
+            phenotype: Some(Arc::from(buf)),
+            used_codons: st.used_codons,
+            depth: st.depth,
+            fitness,
+        }
     } else {
         Individual { genome, ..Individual::default() }
+    }
+}
+
+/// Map `genome` for its validity, used codons and depth only: no phenotype (see
+/// [`Individual::materialize`]) and no D (fitness NaN, the caller's to set). This is
+/// what a gene received by lateral transfer needs: in the pool it is ranked by the
+/// sender's fitness, and its phenotype is needed only in the rare case that it wins.
+pub fn evaluate_stats(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
+    let st = Mapper::new().map_stats(grammar, &genome, params.map_limits());
+    Individual {
+        genome,
+        valid: st.valid,
+        phenotype: None,
+        used_codons: if st.valid { st.used_codons } else { 0 },
+        depth: if st.valid { st.depth } else { 0 },
+        fitness: f64::NAN,
     }
 }
 
@@ -187,6 +226,7 @@ pub fn random_individual<R: Rng + ?Sized>(grammar: &Grammar, params: &GeParams, 
     let fitness = diversity(&d.phenotype);
     Individual {
         genome: d.genome,
+        valid: true,
         phenotype: Some(Arc::from(d.phenotype)),
         used_codons: d.used_codons,
         depth: d.depth,
@@ -358,8 +398,18 @@ fn step<R: Rng + ?Sized>(
             arena.extend_from_slice(g0);
             arena.extend_from_slice(g1);
         }
-        let s0 = mapper.map_stats(grammar, &arena[start..start + len0], limits);
-        let s1 = mapper.map_stats(grammar, &arena[start + len0..start + len0 + len1], limits);
+        // An uncrossed child is a copy of its parent: a valid parent's mapping is known.
+        let known = |p: &Individual| {
+            (!cross && p.valid).then_some(MapStats { valid: true, used_codons: p.used_codons, depth: p.depth })
+        };
+        let s0 = match known(p0) {
+            Some(s) => s,
+            None => mapper.map_stats(grammar, &arena[start..start + len0], limits),
+        };
+        let s1 = match known(p1) {
+            Some(s) => s,
+            None => mapper.map_stats(grammar, &arena[start + len0..start + len0 + len1], limits),
+        };
         if too_deep(&s0, params.max_tree_depth) || too_deep(&s1, params.max_tree_depth) {
             arena.truncate(start);
             stats.discarded_pairs += 1;
@@ -437,6 +487,7 @@ fn step<R: Rng + ?Sized>(
                 mapper.map_into(grammar, &genome, limits, &mut text);
                 Individual {
                     genome,
+                    valid: true,
                     phenotype: Some(Arc::from(text)),
                     used_codons: st.used_codons,
                     depth: st.depth,
