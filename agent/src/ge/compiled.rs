@@ -9,7 +9,7 @@
 //! for the diversity state machine ([`DiversityScan`]), so an offspring is scored from
 //! its runs without a string. The mapper that uses this reproduces the literal PonyGE2
 //! loop exactly (the tests compare them on random genomes of every shipped grammar).
-use super::diversity::{tokenize_run, DiversityScan, Tok};
+use super::diversity::{tokenize_run, DiversityScan, RunEffect, Tok};
 use super::grammar::{Grammar, Symbol, PACKED_NT};
 
 /// One run of adjacent terminals.
@@ -21,6 +21,8 @@ pub(crate) struct Run {
     pub(crate) text: Box<str>,
     /// The text pre-scanned for [`DiversityScan`] (empty when the grammar has no plan).
     pub(crate) toks: Box<[Tok]>,
+    /// The tokens' effect, for runs inside the root element.
+    pub(crate) effect: Option<RunEffect>,
 }
 
 /// One alternative as stack items, right to left: a rule id with [`PACKED_NT`] set, or a
@@ -71,7 +73,8 @@ impl Compiled {
                         }
                     };
                     items.push(runs.len() as u64);
-                    runs.push(Run { terminals: pending.len() as u32, text: text.into(), toks: toks.into() });
+                    let effect = RunEffect::of(&toks);
+                    runs.push(Run { terminals: pending.len() as u32, text: text.into(), toks: toks.into(), effect });
                     pending.clear();
                 };
                 for s in alt.symbols() {
@@ -93,6 +96,7 @@ impl Compiled {
         if !plan_ok {
             for r in &mut runs {
                 r.toks = Box::new([]);
+                r.effect = None;
             }
         }
         Compiled { rules: rules.into(), runs: runs.into(), scored_from_runs: plan_ok }
@@ -123,7 +127,7 @@ impl RunSink for TextOutput<'_> {
 impl RunSink for DiversityScan {
     #[inline]
     fn run(&mut self, run: &Run) {
-        self.feed(&run.toks);
+        self.feed_run(&run.toks, run.effect.as_ref());
     }
 }
 
@@ -133,6 +137,6 @@ impl RunSink for TextAndScore<'_> {
     #[inline]
     fn run(&mut self, run: &Run) {
         self.0.push_str(&run.text);
-        self.1.feed(&run.toks);
+        self.1.feed_run(&run.toks, run.effect.as_ref());
     }
 }

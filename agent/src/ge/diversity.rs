@@ -264,6 +264,98 @@ pub(crate) fn tokenize_run(text: &str) -> Option<Vec<Tok>> {
     Some(toks)
 }
 
+/// The name being read from an element's text.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub(crate) struct PendingName {
+    parts: u32,
+    class: u8,
+    closed: bool,
+    name: Vec<u8>,
+}
+
+impl PendingName {
+    fn push(&mut self, prefix: &[u8], underscore: bool, class: u8) {
+        if self.closed {
+            return;
+        }
+        if self.parts == 0 {
+            self.class = class;
+            self.name.clear();
+        }
+        self.name.extend_from_slice(prefix);
+        self.parts += 1;
+        self.closed = underscore;
+    }
+
+    fn class(&self) -> u8 {
+        match self.parts {
+            0 => 9,
+            1 => self.class,
+            _ => class_of(&self.name),
+        }
+    }
+}
+
+/// The effect of a run of tokens on [`DiversityScan`] while the element depth stays
+/// positive, which holds for every run but the first and last of a phenotype: then no
+/// well-formedness rule can fire, and the run is applied in O(1) instead of token by
+/// token. `None` for runs with declarations, self-closing or malformed tags.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct RunEffect {
+    /// Lowest depth reached inside the run, relative to its start (≤ 0).
+    min_depth: i32,
+    /// Depth change over the run.
+    delta: i32,
+    /// Text before the run's first tag: (name part, has `_`, class).
+    lead: Option<(Box<[u8]>, bool, u8)>,
+    has_tag: bool,
+    /// Classes of the names the run completes after its first tag.
+    completed: Box<[u8]>,
+    /// The element whose text is still being read at the run's end.
+    tail: Option<PendingName>,
+}
+
+impl RunEffect {
+    pub(crate) fn of(toks: &[Tok]) -> Option<RunEffect> {
+        let (mut depth, mut min_depth) = (0i32, 0i32);
+        let mut lead = None;
+        let mut has_tag = false;
+        let mut completed = Vec::new();
+        let mut reading: Option<PendingName> = None;
+        for t in toks {
+            match t {
+                Tok::Text { prefix, underscore, class, .. } => {
+                    if !has_tag {
+                        lead = Some((prefix.clone(), *underscore, *class));
+                    } else if let Some(r) = &mut reading {
+                        r.push(prefix, *underscore, *class);
+                    }
+                }
+                Tok::Open { control, self_closing: false } => {
+                    has_tag = true;
+                    if let Some(r) = reading.take() {
+                        completed.push(r.class());
+                    }
+                    if !control {
+                        reading = Some(PendingName::default());
+                    }
+                    depth += 1;
+                }
+                Tok::Close => {
+                    has_tag = true;
+                    if let Some(r) = reading.take() {
+                        completed.push(r.class());
+                    }
+                    depth -= 1;
+                    min_depth = min_depth.min(depth);
+                }
+                Tok::Open { self_closing: true, .. } | Tok::Pi | Tok::Bad => return None,
+            }
+        }
+        Some(RunEffect { min_depth, delta: depth, lead, has_tag, completed: completed.into(), tail: reading })
+    }
+}
+
 /// The [`count`] state machine fed with pre-scanned tokens, run after run, as the
 /// mapper emits them. Reusable: [`DiversityScan::reset`] keeps the name buffer.
 #[derive(Debug, Default, Clone)]
@@ -274,12 +366,7 @@ pub(crate) struct DiversityScan {
     bad: bool,
     /// Reading the text of a non-control element.
     collecting: bool,
-    /// A `_` ended the name part of that text.
-    name_closed: bool,
-    /// Text tokens that contributed to the name so far.
-    parts: u32,
-    class: u8,
-    name: Vec<u8>,
+    name: PendingName,
 }
 
 impl DiversityScan {
@@ -291,16 +378,8 @@ impl DiversityScan {
         self.collecting = false;
     }
 
-    fn end_text(&mut self) {
-        if !self.collecting {
-            return;
-        }
-        self.collecting = false;
-        let class = match self.parts {
-            0 => 9,
-            1 => self.class,
-            _ => class_of(&self.name),
-        };
+    #[inline]
+    fn add_class(&mut self, class: u8) {
         self.counts.total += 1;
         match self.counts.per_behaviour.get_mut(class as usize) {
             Some(n) => *n += 1,
@@ -308,7 +387,52 @@ impl DiversityScan {
         }
     }
 
+    fn end_text(&mut self) {
+        if self.collecting {
+            self.collecting = false;
+            self.add_class(self.name.class());
+        }
+    }
+
+    fn start_text(&mut self) {
+        self.collecting = true;
+        self.name.parts = 0;
+        self.name.closed = false;
+    }
+
+    /// Feed one run: in O(1) through its [`RunEffect`] when the depth stays positive,
+    /// token by token otherwise.
     #[inline]
+    pub(crate) fn feed_run(&mut self, toks: &[Tok], effect: Option<&RunEffect>) {
+        match effect {
+            Some(e) if !self.bad && self.depth as i32 + e.min_depth >= 1 => {
+                if let Some((prefix, underscore, class)) = &e.lead {
+                    if self.collecting {
+                        self.name.push(prefix, *underscore, *class);
+                    }
+                }
+                if e.has_tag {
+                    self.end_text();
+                    for &c in e.completed.iter() {
+                        self.add_class(c);
+                    }
+                    if let Some(t) = &e.tail {
+                        self.collecting = true;
+                        self.name.parts = t.parts;
+                        self.name.class = t.class;
+                        self.name.closed = t.closed;
+                        if t.parts > 0 {
+                            self.name.name.clear();
+                            self.name.name.extend_from_slice(&t.name);
+                        }
+                    }
+                }
+                self.depth = (self.depth as i32 + e.delta) as u32;
+            }
+            _ => self.feed(toks),
+        }
+    }
+
     pub(crate) fn feed(&mut self, toks: &[Tok]) {
         for t in toks {
             match t {
@@ -316,14 +440,8 @@ impl DiversityScan {
                     if self.depth == 0 && !ws {
                         self.bad = true;
                     }
-                    if self.collecting && !self.name_closed {
-                        if self.parts == 0 {
-                            self.class = *class;
-                            self.name.clear();
-                        }
-                        self.name.extend_from_slice(prefix);
-                        self.parts += 1;
-                        self.name_closed = *underscore;
+                    if self.collecting {
+                        self.name.push(prefix, *underscore, *class);
                     }
                 }
                 Tok::Open { control, self_closing } => {
@@ -332,14 +450,9 @@ impl DiversityScan {
                         self.bad = true;
                     }
                     if !control {
+                        self.start_text();
                         if *self_closing {
-                            self.collecting = true;
-                            self.parts = 0;
                             self.end_text();
-                        } else {
-                            self.collecting = true;
-                            self.name_closed = false;
-                            self.parts = 0;
                         }
                     }
                     if *self_closing {
