@@ -166,31 +166,43 @@ pub struct Learner {
     received: ReceivedGenes,
 }
 
-/// The last few received genomes with their mapping. A cell-mate offers the same gene
-/// step after step until it evolves, and genes spread, so most arrivals were seen
-/// recently: mapping them again would be most of the cost of lateral transfer.
+/// The mapping of each current cell-mate's gene, by sender. A cell-mate offers the same
+/// gene step after step until it evolves, so most arrivals were mapped the step before;
+/// mapping them again was most of the cost of lateral transfer in crowded cells. Only
+/// the senders of the latest step are kept, so memory stays bounded by the cell.
 #[derive(Default)]
 struct ReceivedGenes {
-    recent: Vec<Individual>,
-    next: usize,
+    /// (sender, individual), sorted by sender.
+    last: Vec<(AgentId, Individual)>,
+    this: Vec<(AgentId, Individual)>,
 }
 
 impl ReceivedGenes {
-    const CAPACITY: usize = 8;
-
-    /// The evaluated individual of `genome` (a copy; its fitness is the caller's to set).
-    fn evaluate(&mut self, grammar: &Grammar, genome: &[u32], params: &ge::GeParams) -> Individual {
-        if let Some(ind) = self.recent.iter().find(|i| i.genome == genome) {
-            return ind.clone();
-        }
-        let ind = ge::evaluate_stats(grammar, genome.to_vec(), params);
-        if self.recent.len() < Self::CAPACITY {
-            self.recent.push(ind.clone());
-        } else {
-            self.recent[self.next] = ind.clone();
-            self.next = (self.next + 1) % Self::CAPACITY;
-        }
+    /// The evaluated individual of `from`'s `genome` (a copy; its fitness is the caller's
+    /// to set). Calls within one step must come in increasing sender order.
+    fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &[u32], params: &ge::GeParams) -> Individual {
+        let ind = match self.last.binary_search_by_key(&from, |(id, _)| *id) {
+            Ok(k) if self.last[k].1.genome == genome => self.last[k].1.clone(),
+            _ => ge::evaluate_stats(grammar, genome.to_vec(), params),
+        };
+        self.this.push((from, ind.clone()));
         ind
+    }
+
+    /// Close a step whose genes came from `senders` (sorted): keep what was evaluated in
+    /// it, and the earlier entries of those senders that were not evaluated this time.
+    fn end_step(&mut self, senders: impl Iterator<Item = AgentId>) {
+        for id in senders {
+            if self.this.binary_search_by_key(&id, |(s, _)| *s).is_err() {
+                if let Ok(k) = self.last.binary_search_by_key(&id, |(s, _)| *s) {
+                    let entry = std::mem::take(&mut self.last[k].1);
+                    self.this.push((id, entry));
+                }
+            }
+        }
+        self.this.sort_by_key(|(id, _)| *id);
+        std::mem::swap(&mut self.last, &mut self.this);
+        self.this.clear();
     }
 }
 
@@ -370,7 +382,7 @@ impl Learner {
                 let ind = match s {
                     None => self.gene.clone(),
                     Some(g) => {
-                        let mut ind = self.received.evaluate(&self.grammar, &g.genome, &self.cfg.ge);
+                        let mut ind = self.received.evaluate(&self.grammar, g.from, &g.genome, &self.cfg.ge);
                         if !ind.valid() {
                             *lost += 1;
                             continue;
@@ -382,6 +394,7 @@ impl Learner {
                 self.pool.push(ind);
             }
         }
+        self.received.end_step(arrived.iter().map(|g| g.from));
         survivors.len() as u32
     }
 
