@@ -253,6 +253,9 @@ pub struct NetOutcome {
     pub world_rss_kib: Option<u64>,
     pub processes: u32,
     pub agents_per_process: u32,
+    /// Perturbations sent on the control plane during the run (`geese control`), in
+    /// arrival order, for the manifest.
+    pub control_log: Vec<Control>,
 }
 
 /// Where the binaries are: `bin_dir`, else `$GEESE_BIN_DIR`, else next to this
@@ -410,6 +413,26 @@ async fn run_net_async(
         })
         .await
         .map_err(zerr)?;
+    // Record what is scheduled on the control plane while the run goes on, so the
+    // manifest says how the run was perturbed.
+    // A stop sent on the control plane ends the run early but not in error: the results
+    // so far are written.
+    let control_log = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Control>::new()));
+    let log = control_log.clone();
+    let _control = session
+        .declare_subscriber(keys::all_ctl(&run))
+        .callback(move |s| {
+            if let Ok(c @ (Control::Schedule { .. } | Control::Stop)) = decode::<Control>(&s.payload().to_bytes()) {
+                if let Ok(mut l) = log.lock() {
+                    // The world relays a stop to its agents on the same key.
+                    if !(c == Control::Stop && l.contains(&Control::Stop)) {
+                        l.push(c);
+                    }
+                }
+            }
+        })
+        .await
+        .map_err(zerr)?;
     let t = tx.clone();
     let run2 = run.clone();
     let _presence = session
@@ -516,7 +539,9 @@ async fn run_net_async(
                 }
                 Ok(ReportMsg::Done { steps, completed: done }) => {
                     completed = done && steps == c.steps;
-                    if !completed {
+                    let stop_requested =
+                        control_log.lock().map(|l| l.iter().any(|c| *c == Control::Stop)).unwrap_or(false);
+                    if !completed && !stop_requested {
                         outcome = Err(LaunchError::WorldGone(steps));
                     }
                     break;
@@ -557,6 +582,7 @@ async fn run_net_async(
         world_rss_kib: world_rss,
         processes,
         agents_per_process: per,
+        control_log: control_log.lock().map(|l| l.clone()).unwrap_or_default(),
     })
 }
 
@@ -625,7 +651,7 @@ pub fn run_cli(spec: &RunSpec, opts: &NetOptions, out: &Path, quiet: bool) -> an
     }
     csv.finish()?;
     net.flush()?;
-    write_manifest(out, spec, "zenoh", &outcome.summary)?;
+    write_manifest(out, spec, "zenoh", &outcome.summary, &outcome.control_log)?;
     Ok(outcome)
 }
 

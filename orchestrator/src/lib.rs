@@ -7,6 +7,7 @@
 //! - [`output`]: per-step CSV and the run manifest.
 //! - [`bench`]: throughput benchmark of the simulation core.
 //! - [`launch`]: the distributed mode: world and agent processes over Zenoh.
+//! - [`control`]: `geese control`, perturbations and stop sent to a running world.
 //! - [`bench_net`]: the distributed benchmark (lock-step rate over Zenoh, bare and
 //!   learning).
 //! - [`condition`]: the knobs a campaign varies and how a condition builds a run config.
@@ -22,6 +23,7 @@ pub mod bench_net;
 pub mod campaign;
 pub mod condition;
 pub mod config;
+pub mod control;
 pub mod launch;
 pub mod metrics;
 pub mod output;

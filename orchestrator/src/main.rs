@@ -43,6 +43,8 @@ enum Cmd {
     Report(ReportArgs),
     /// Export a results database to CSV files.
     Export(ExportArgs),
+    /// Send a perturbation or stop to a running distributed world (control plane).
+    Control(geese_orchestrator::control::ControlArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -301,7 +303,7 @@ fn run_cmd(a: RunArgs) -> Result<()> {
     csv.finish()?;
     let mut summary = trial.summary().clone();
     summary.wall_seconds = start.elapsed().as_secs_f64();
-    write_manifest(&out, &spec, "in-process", &summary)?;
+    write_manifest(&out, &spec, "in-process", &summary, &[])?;
     println!("final task %: {:.2}", summary.final_task_pct);
     match summary.first_step_at_threshold {
         Some(s) => println!("reached {} % at step {s}", c.threshold),
@@ -326,6 +328,9 @@ fn net_run_cmd(
     );
     let o = geese_orchestrator::launch::run_cli(spec, opts, out, quiet)?;
     let s = &o.summary;
+    if !o.completed {
+        println!("stopped at step {} of {} by a control-plane stop (geese control)", s.steps, c.steps);
+    }
     println!("final task %: {:.2}", s.final_task_pct);
     match s.first_step_at_threshold {
         Some(st) => println!("reached {} % at step {st}", c.threshold),
@@ -388,5 +393,6 @@ fn main() -> Result<()> {
         Cmd::Campaign(a) => campaign_cli::campaign_cmd(a),
         Cmd::Report(a) => campaign_cli::report_cmd(a),
         Cmd::Export(a) => campaign_cli::export_cmd(a),
+        Cmd::Control(a) => geese_orchestrator::control::control_cmd(a),
     }
 }

@@ -58,6 +58,9 @@ struct Manifest<'a> {
     grammar_digest: String,
     transport: &'a str,
     config: &'a crate::config::RunConfig,
+    /// Perturbations received on the control plane during the run (`geese control`).
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    control: &'a [geese_proto::Control],
     summary: &'a TrialSummary,
 }
 
@@ -69,7 +72,13 @@ pub fn text_digest(text: &str) -> String {
 }
 
 /// Write `manifest.json` into `dir`.
-pub fn write_manifest(dir: &Path, spec: &RunSpec, transport: &str, summary: &TrialSummary) -> std::io::Result<()> {
+pub fn write_manifest(
+    dir: &Path,
+    spec: &RunSpec,
+    transport: &str,
+    summary: &TrialSummary,
+    control: &[geese_proto::Control],
+) -> std::io::Result<()> {
     let m = Manifest {
         command: std::env::args().collect(),
         versions: versions(),
@@ -79,6 +88,7 @@ pub fn write_manifest(dir: &Path, spec: &RunSpec, transport: &str, summary: &Tri
         grammar_digest: text_digest(&spec.grammar_text),
         transport,
         config: &spec.config,
+        control,
         summary,
     };
     let f = std::fs::File::create(dir.join("manifest.json"))?;

@@ -241,6 +241,47 @@ pub async fn put(session: &Session, key: &str, bytes: Vec<u8>) -> Result<(), Bus
         .map_err(|e| BusError::Zenoh(format!("put {key}: {e}")))
 }
 
+/// Ask the world of `run` for its [`crate::net::RunInfo`] (queryable `ctl/info`),
+/// retrying until `patience` runs out. Also returns the handle of the runtime Zenoh
+/// delivers messages on (seen from the reply callback), which agent processes reuse.
+pub async fn fetch_run_info(
+    session: &Session,
+    run: &str,
+    patience: std::time::Duration,
+) -> Result<(crate::net::RunInfo, Option<tokio::runtime::Handle>), BusError> {
+    use std::time::{Duration, Instant};
+    let deadline = Instant::now() + patience;
+    loop {
+        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+        session
+            .get(crate::keys::info(run))
+            .timeout(Duration::from_secs(2))
+            .callback(move |reply| {
+                if let Ok(sample) = reply.result() {
+                    let handle = tokio::runtime::Handle::try_current().ok();
+                    let _ = tx.send((sample.payload().to_bytes().into_owned(), handle));
+                }
+            })
+            .await
+            .map_err(|e| BusError::Zenoh(format!("query {}: {e}", crate::keys::info(run))))?;
+        if let Ok(Some((bytes, handle))) = tokio::time::timeout(Duration::from_millis(2500), rx.recv()).await {
+            match crate::decode::<crate::net::RunInfo>(&bytes) {
+                Ok(i) if i.spec.run == run => return Ok((i, handle)),
+                Ok(_) => tracing::warn!("run info of another run ignored"),
+                Err(e) => tracing::warn!("undecodable run info ignored: {e}"),
+            }
+        }
+        if Instant::now() >= deadline {
+            return Err(BusError::Zenoh(format!(
+                "no world answered on {} within {} ms",
+                crate::keys::info(run),
+                patience.as_millis()
+            )));
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
 /// The environment variable Zenoh reads its internal runtime sizes from.
 pub const ZENOH_RUNTIME_ENV: &str = "ZENOH_RUNTIME";
 

@@ -136,7 +136,7 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         .await
         .map_err(zerr)?;
     spawn_signal_watch(tx.clone());
-    let (info, zenoh_rt) = fetch_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
+    let (info, zenoh_rt) = zenoh_bus::fetch_run_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
     if range.last >= info.spec.agents {
         bail!("agents {range} outside the run's {} agents", info.spec.agents);
     }
@@ -205,42 +205,6 @@ fn spawn_signal_watch(tx: UnboundedSender<Event>) {
         geese_proto::zenoh_bus::shutdown_signal().await;
         let _ = tx.send(Event::Stop);
     });
-}
-
-/// Ask the world for the run's information, retrying until `patience` runs out. Also
-/// returns the handle of the runtime Zenoh delivers messages on (seen from the reply
-/// callback).
-async fn fetch_info(
-    session: &Session,
-    run: &str,
-    patience: Duration,
-) -> Result<(RunInfo, Option<tokio::runtime::Handle>)> {
-    let deadline = Instant::now() + patience;
-    loop {
-        let (tx, mut rx) = unbounded_channel();
-        session
-            .get(keys::info(run))
-            .timeout(Duration::from_secs(2))
-            .callback(move |reply| {
-                if let Ok(sample) = reply.result() {
-                    let handle = tokio::runtime::Handle::try_current().ok();
-                    let _ = tx.send((sample.payload().to_bytes().into_owned(), handle));
-                }
-            })
-            .await
-            .map_err(zerr)?;
-        if let Ok(Some((bytes, handle))) = tokio::time::timeout(Duration::from_millis(2500), rx.recv()).await {
-            match decode::<RunInfo>(&bytes) {
-                Ok(i) if i.spec.run == run => return Ok((i, handle)),
-                Ok(_) => tracing::warn!("run info of another run ignored"),
-                Err(e) => tracing::warn!("undecodable run info ignored: {e}"),
-            }
-        }
-        if Instant::now() >= deadline {
-            bail!("no world answered on {} within {} ms", keys::info(run), patience.as_millis());
-        }
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
 }
 
 /// Subscriptions of one cell (exact mode).

@@ -1,0 +1,190 @@
+//! `geese control`: send a control-plane command to a running distributed world.
+//!
+//! Why this exists: a researcher watching a swarm run over Zenoh wants to perturb it
+//! now — add obstacles, change IP, switch lateral transfer, drop genes, kill agents —
+//! without having planned it in the configuration. The world already applies a
+//! [`Control::Schedule`] received on `geese/<run>/ctl/schedule` between two steps,
+//! exactly as a perturbation from the configuration (REFERENCE §8.4); this command asks
+//! the world which step it is at, checks the request against it and publishes it.
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use geese_proto::zenoh_bus::{self, CommonArgs, Role};
+use geese_proto::{encode, keys, Control, Perturbation};
+use std::time::Duration;
+
+#[derive(Args, Debug)]
+pub struct ControlArgs {
+    /// Name of the run (`geese run --run-name`, or the launcher's generated name).
+    #[arg(long)]
+    pub run: String,
+    /// How long to look for the world, in milliseconds.
+    #[arg(long, default_value_t = 5000)]
+    pub timeout_ms: u64,
+    #[command(flatten)]
+    pub zenoh: CommonArgs,
+    #[command(subcommand)]
+    pub cmd: ControlCmd,
+}
+
+#[derive(Subcommand, Debug, Clone, PartialEq)]
+pub enum ControlCmd {
+    /// Schedule a perturbation, applied right after step `--at` (default: the next step
+    /// the world runs, so it is in force from the one after).
+    Perturb {
+        #[arg(long)]
+        at: Option<u64>,
+        #[command(flatten)]
+        change: ChangeArgs,
+    },
+    /// Stop the run after the current step (every process exits).
+    Stop,
+}
+
+/// Exactly one change.
+#[derive(Args, Debug, Clone, PartialEq)]
+#[group(required = true, multiple = false)]
+pub struct ChangeArgs {
+    /// Add obstacles: COUNT or COUNT:RADIUS (radius 10 by default); they stay.
+    #[arg(long, value_name = "COUNT[:RADIUS]")]
+    pub add_obstacles: Option<String>,
+    /// Set the interaction probability IP (in [0, 1]).
+    #[arg(long)]
+    pub ip: Option<f64>,
+    /// Switch lateral transfer on or off.
+    #[arg(long, value_name = "on|off")]
+    pub lateral_transfer: Option<String>,
+    /// Set the gene-message loss probability (in [0, 1]).
+    #[arg(long)]
+    pub gene_loss: Option<f64>,
+    /// Kill this fraction (in (0, 1]) of the live agents.
+    #[arg(long)]
+    pub kill: Option<f64>,
+}
+
+fn probability(name: &str, p: f64) -> Result<f64> {
+    if !(0.0..=1.0).contains(&p) {
+        bail!("--{name} {p}: must be a probability in [0, 1]");
+    }
+    Ok(p)
+}
+
+impl ChangeArgs {
+    /// The perturbation asked for, validated; errors name the flag.
+    pub fn perturbation(&self) -> Result<Perturbation> {
+        if let Some(spec) = &self.add_obstacles {
+            let (count, radius) = match spec.split_once(':') {
+                Some((c, r)) => (c, r),
+                None => (spec.as_str(), "10"),
+            };
+            let count: u32 =
+                count.trim().parse().with_context(|| format!("--add-obstacles {spec:?}: COUNT must be an integer"))?;
+            let radius: i32 =
+                radius.trim().parse().with_context(|| format!("--add-obstacles {spec:?}: RADIUS must be an integer"))?;
+            if count == 0 || radius <= 0 {
+                bail!("--add-obstacles {spec:?}: COUNT and RADIUS must be positive");
+            }
+            return Ok(Perturbation::AddObstacles { count, radius });
+        }
+        if let Some(p) = self.ip {
+            return Ok(Perturbation::SetIp(probability("ip", p)?));
+        }
+        if let Some(v) = &self.lateral_transfer {
+            return match v.as_str() {
+                "on" | "true" => Ok(Perturbation::SetLateralTransfer(true)),
+                "off" | "false" => Ok(Perturbation::SetLateralTransfer(false)),
+                _ => bail!("--lateral-transfer {v:?}: expected on or off"),
+            };
+        }
+        if let Some(p) = self.gene_loss {
+            return Ok(Perturbation::SetGeneLoss(probability("gene-loss", p)?));
+        }
+        if let Some(f) = self.kill {
+            if !(f > 0.0 && f <= 1.0) {
+                bail!("--kill {f}: must be a fraction in (0, 1]");
+            }
+            return Ok(Perturbation::KillFraction(f));
+        }
+        bail!("no change given")
+    }
+}
+
+/// Build the control message for a world that runs `next_step` next.
+pub fn message(cmd: &ControlCmd, next_step: u64) -> Result<(&'static str, Control)> {
+    match cmd {
+        ControlCmd::Stop => Ok(("stop", Control::Stop)),
+        ControlCmd::Perturb { at, change } => {
+            let change = change.perturbation()?;
+            let at_step = at.unwrap_or(next_step);
+            if at_step < next_step {
+                bail!("--at {at_step}: the world is already at step {next_step}; choose a step ≥ {next_step}");
+            }
+            Ok(("schedule", Control::Schedule { at_step, change }))
+        }
+    }
+}
+
+pub fn control_cmd(args: ControlArgs) -> Result<()> {
+    if let ControlCmd::Perturb { change, .. } = &args.cmd {
+        change.perturbation()?;
+    }
+    let rt = zenoh_bus::runtime(1)?;
+    rt.block_on(async move {
+        let session = zenoh_bus::open(&args.zenoh, Role::Client).await?;
+        let result = async {
+            let (info, _) =
+                zenoh_bus::fetch_run_info(&session, &args.run, Duration::from_millis(args.timeout_ms)).await?;
+            let (what, msg) = message(&args.cmd, info.next_step)?;
+            zenoh_bus::put(&session, &keys::ctl(&args.run, what), encode(&msg)?).await?;
+            println!("geese control: sent {msg:?} to run {} (world at step {})", args.run, info.next_step);
+            anyhow::Ok(())
+        }
+        .await;
+        // Let the put leave before the session closes.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let _ = session.close().await;
+        result
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn change() -> ChangeArgs {
+        ChangeArgs { add_obstacles: None, ip: None, lateral_transfer: None, gene_loss: None, kill: None }
+    }
+
+    #[test]
+    fn changes_are_validated_and_named() {
+        let c = ChangeArgs { add_obstacles: Some("3:5".into()), ..change() };
+        assert_eq!(c.perturbation().unwrap(), Perturbation::AddObstacles { count: 3, radius: 5 });
+        let c = ChangeArgs { add_obstacles: Some("2".into()), ..change() };
+        assert_eq!(c.perturbation().unwrap(), Perturbation::AddObstacles { count: 2, radius: 10 });
+        for bad in ["x", "2:y", "0", "2:-1"] {
+            let e = ChangeArgs { add_obstacles: Some(bad.into()), ..change() }.perturbation().unwrap_err();
+            assert!(e.to_string().contains("--add-obstacles"), "{e}");
+        }
+        let e = ChangeArgs { ip: Some(1.5), ..change() }.perturbation().unwrap_err();
+        assert!(e.to_string().contains("--ip"), "{e}");
+        let e = ChangeArgs { lateral_transfer: Some("maybe".into()), ..change() }.perturbation().unwrap_err();
+        assert!(e.to_string().contains("--lateral-transfer"), "{e}");
+        assert_eq!(
+            ChangeArgs { lateral_transfer: Some("off".into()), ..change() }.perturbation().unwrap(),
+            Perturbation::SetLateralTransfer(false)
+        );
+        let e = ChangeArgs { kill: Some(0.0), ..change() }.perturbation().unwrap_err();
+        assert!(e.to_string().contains("--kill"), "{e}");
+    }
+
+    #[test]
+    fn schedule_defaults_to_the_next_step_and_refuses_the_past() {
+        let cmd = ControlCmd::Perturb { at: None, change: ChangeArgs { ip: Some(0.5), ..change() } };
+        assert_eq!(
+            message(&cmd, 42).unwrap(),
+            ("schedule", Control::Schedule { at_step: 42, change: Perturbation::SetIp(0.5) })
+        );
+        let past = ControlCmd::Perturb { at: Some(10), change: ChangeArgs { ip: Some(0.5), ..change() } };
+        assert!(message(&past, 42).unwrap_err().to_string().contains("already at step 42"));
+        assert_eq!(message(&ControlCmd::Stop, 7).unwrap(), ("stop", Control::Stop));
+    }
+}
