@@ -31,6 +31,8 @@ pub(crate) struct Run {
 pub(crate) struct CAlt {
     pub(crate) items_rev: Box<[u64]>,
     pub(crate) nt_count: u32,
+    /// Codons the alternative's non-terminals need at least (sum of their `min_codons`).
+    pub(crate) child_codons: u32,
 }
 
 /// One rule: its alternatives and the [`super::grammar::fast_mod`] multiplier.
@@ -38,6 +40,11 @@ pub(crate) struct CAlt {
 pub(crate) struct CRule {
     pub(crate) alts: Box<[CAlt]>,
     pub(crate) magic: u64,
+    /// §5.2 `min_steps`: every derivation of the rule at depth d holds a symbol at depth
+    /// d + `min_steps` or deeper.
+    pub(crate) min_steps: u32,
+    /// Fewest codons any derivation of the rule consumes (itself included).
+    pub(crate) min_codons: u32,
 }
 
 /// The compiled form of a [`Grammar`].
@@ -88,10 +95,46 @@ impl Compiled {
                 }
                 flush(&mut pending, &mut items, &mut runs);
                 items.reverse();
-                alts.push(CAlt { items_rev: items.into(), nt_count: alt.nt_count() as u32 });
+                alts.push(CAlt { items_rev: items.into(), nt_count: alt.nt_count() as u32, child_codons: 0 });
             }
             alts.shrink_to_fit();
-            rules.push(CRule { alts: alts.into(), magic: rule.mod_magic });
+            rules.push(CRule { alts: alts.into(), magic: rule.mod_magic, min_steps: rule.min_steps(), min_codons: 0 });
+        }
+        // Fewest codons per rule: a fixpoint from "unknown" (every rule terminates, or
+        // the grammar would have been rejected, so it converges).
+        let mut min_codons = vec![u32::MAX; rules.len()];
+        loop {
+            let mut changed = false;
+            for (r, rule) in g.rules().iter().enumerate() {
+                for alt in rule.alternatives() {
+                    let mut sum = 1u32;
+                    for s in alt.symbols() {
+                        if let Symbol::NonTerminal(c) = *s {
+                            sum = sum.saturating_add(min_codons[c as usize]);
+                        }
+                    }
+                    if sum < min_codons[r] {
+                        min_codons[r] = sum;
+                        changed = true;
+                    }
+                }
+            }
+            if !changed {
+                break;
+            }
+        }
+        for ((crule, rule), &mc) in rules.iter_mut().zip(g.rules()).zip(&min_codons) {
+            crule.min_codons = mc;
+            for (calt, alt) in crule.alts.iter_mut().zip(rule.alternatives()) {
+                calt.child_codons = alt
+                    .symbols()
+                    .iter()
+                    .map(|s| match *s {
+                        Symbol::NonTerminal(c) => min_codons[c as usize],
+                        Symbol::Terminal(_) => 0,
+                    })
+                    .fold(0u32, u32::saturating_add);
+            }
         }
         if !plan_ok {
             for r in &mut runs {
