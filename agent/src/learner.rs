@@ -121,13 +121,14 @@ impl CellSet {
     }
 }
 
-/// Digest of a genome, for parity checks across transports.
+/// Digest of a genome, for parity checks across transports: FNV-1a over whole codons
+/// (one multiply per codon rather than per byte; it is computed at every adoption).
 pub fn genome_digest(genome: &[u32]) -> u64 {
-    let mut h = Fnv64::default();
+    let mut h = Fnv64::default().finish();
     for &c in genome {
-        h.write_u32(c);
+        h = (h ^ u64::from(c)).wrapping_mul(0x0000_0100_0000_01B3);
     }
-    h.finish()
+    h
 }
 
 /// Build the behaviour tree of a valid individual.
@@ -164,6 +165,7 @@ pub struct Learner {
     expected: Vec<AgentId>,
     have_percept: bool,
     received: ReceivedGenes,
+    workspace: ge::Workspace,
 }
 
 /// The mapping of each current cell-mate's gene, by sender. A cell-mate offers the same
@@ -175,6 +177,7 @@ struct ReceivedGenes {
     /// (sender, individual), sorted by sender.
     last: Vec<(AgentId, Individual)>,
     this: Vec<(AgentId, Individual)>,
+    mapper: ge::Mapper,
 }
 
 impl ReceivedGenes {
@@ -183,7 +186,7 @@ impl ReceivedGenes {
     fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &[u32], params: &ge::GeParams) -> Individual {
         let ind = match self.last.binary_search_by_key(&from, |(id, _)| *id) {
             Ok(k) if self.last[k].1.genome == genome => self.last[k].1.clone(),
-            _ => ge::evaluate_stats(grammar, genome.to_vec(), params),
+            _ => ge::evaluate_stats_with(&mut self.mapper, grammar, genome.to_vec(), params),
         };
         self.this.push((from, ind.clone()));
         ind
@@ -251,6 +254,7 @@ impl Learner {
             expected: Vec::new(),
             have_percept: false,
             received: ReceivedGenes::default(),
+            workspace: ge::Workspace::default(),
             view,
             cfg,
             grammar,
@@ -400,7 +404,9 @@ impl Learner {
 
     /// Genetic step on the pool, then adopt the winner (§5.6, §6.2 step 8).
     fn evolve(&mut self) {
-        let winner = ge::genetic_step(&self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge);
+        let winner =
+            ge::genetic_step_in(&mut self.workspace, &self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge)
+                .map(|(w, _)| w);
         self.pool.clear();
         let Ok(mut winner) = winner else { return };
         winner.materialize(&self.grammar, &self.cfg.ge);

@@ -209,7 +209,12 @@ pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Indiv
 /// what a gene received by lateral transfer needs: in the pool it is ranked by the
 /// sender's fitness, and its phenotype is needed only in the rare case that it wins.
 pub fn evaluate_stats(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
-    let st = Mapper::new().map_stats(grammar, &genome, params.map_limits());
+    evaluate_stats_with(&mut Mapper::new(), grammar, genome, params)
+}
+
+/// [`evaluate_stats`] with the caller's mapper.
+pub fn evaluate_stats_with(mapper: &mut Mapper, grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
+    let st = mapper.map_stats(grammar, &genome, params.map_limits());
     Individual {
         genome,
         valid: st.valid,
@@ -287,7 +292,7 @@ const MAX_REMUTATIONS: usize = 1000;
 
 /// An offspring inside the arena.
 #[derive(Debug, Clone, Copy)]
-struct Kid {
+pub(crate) struct Kid {
     start: usize,
     len: usize,
     stats: MapStats,
@@ -308,6 +313,15 @@ fn used_span(ind: &Individual) -> usize {
     }
 }
 
+/// Buffers of a genetic step, kept by a caller that runs many (a learner), so that a
+/// step allocates nothing but the winner.
+#[derive(Debug, Default)]
+pub struct Workspace {
+    mapper: Mapper,
+    arena: Vec<u32>,
+    kids: Vec<Kid>,
+}
+
 /// One genetic step on `pool` (§5.6); returns the winner with the fitness it was ranked
 /// by (the caller resets it). The pool is emptied.
 pub fn genetic_step<R: Rng + ?Sized>(
@@ -326,12 +340,24 @@ pub fn genetic_step_with_stats<R: Rng + ?Sized>(
     params: &GeParams,
     rng: &mut R,
 ) -> Result<(Individual, StepStats), GeError> {
-    let result = step(grammar, pool, params, rng);
+    genetic_step_in(&mut Workspace::default(), grammar, pool, params, rng)
+}
+
+/// [`genetic_step_with_stats`] with the caller's buffers.
+pub fn genetic_step_in<R: Rng + ?Sized>(
+    ws: &mut Workspace,
+    grammar: &Grammar,
+    pool: &mut Vec<Individual>,
+    params: &GeParams,
+    rng: &mut R,
+) -> Result<(Individual, StepStats), GeError> {
+    let result = step(ws, grammar, pool, params, rng);
     pool.clear();
     result
 }
 
 fn step<R: Rng + ?Sized>(
+    ws: &mut Workspace,
     grammar: &Grammar,
     pool: &mut [Individual],
     params: &GeParams,
@@ -355,9 +381,9 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let mut mapper = Mapper::new();
-    let mut arena: Vec<u32> = Vec::with_capacity((wanted + 1) * max_len.min(256));
-    let mut kids: Vec<Kid> = Vec::with_capacity(wanted + 1);
+    let Workspace { mapper, arena, kids } = ws;
+    arena.clear();
+    kids.clear();
 
     // 2. Variable one-point crossover until enough offspring exist.
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
