@@ -29,7 +29,9 @@ pub struct ControlArgs {
 #[derive(Subcommand, Debug, Clone, PartialEq)]
 pub enum ControlCmd {
     /// Schedule a perturbation, applied right after step `--at` (default: the next step
-    /// the world runs, so it is in force from the one after).
+    /// the world runs, so it is in force from the one after). The world keeps running
+    /// while the message travels: if it has passed `--at` when the message arrives, the
+    /// change applies at once, between two steps.
     Perturb {
         #[arg(long)]
         at: Option<u64>,
@@ -78,8 +80,10 @@ impl ChangeArgs {
             };
             let count: u32 =
                 count.trim().parse().with_context(|| format!("--add-obstacles {spec:?}: COUNT must be an integer"))?;
-            let radius: i32 =
-                radius.trim().parse().with_context(|| format!("--add-obstacles {spec:?}: RADIUS must be an integer"))?;
+            let radius: i32 = radius
+                .trim()
+                .parse()
+                .with_context(|| format!("--add-obstacles {spec:?}: RADIUS must be an integer"))?;
             if count == 0 || radius <= 0 {
                 bail!("--add-obstacles {spec:?}: COUNT and RADIUS must be positive");
             }

@@ -415,19 +415,14 @@ async fn run_net_async(
         .map_err(zerr)?;
     // Record what is scheduled on the control plane while the run goes on, so the
     // manifest says how the run was perturbed.
-    // A stop sent on the control plane ends the run early but not in error: the results
-    // so far are written.
     let control_log = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Control>::new()));
     let log = control_log.clone();
     let _control = session
-        .declare_subscriber(keys::all_ctl(&run))
+        .declare_subscriber(keys::ctl(&run, "schedule"))
         .callback(move |s| {
-            if let Ok(c @ (Control::Schedule { .. } | Control::Stop)) = decode::<Control>(&s.payload().to_bytes()) {
+            if let Ok(c @ Control::Schedule { .. }) = decode::<Control>(&s.payload().to_bytes()) {
                 if let Ok(mut l) = log.lock() {
-                    // The world relays a stop to its agents on the same key.
-                    if !(c == Control::Stop && l.contains(&Control::Stop)) {
-                        l.push(c);
-                    }
+                    l.push(c);
                 }
             }
         })
@@ -537,11 +532,9 @@ async fn run_net_async(
                         }
                     }
                 }
-                Ok(ReportMsg::Done { steps, completed: done }) => {
+                Ok(ReportMsg::Done { steps, completed: done, requested }) => {
                     completed = done && steps == c.steps;
-                    let stop_requested =
-                        control_log.lock().map(|l| l.iter().any(|c| *c == Control::Stop)).unwrap_or(false);
-                    if !completed && !stop_requested {
+                    if !completed && !requested {
                         outcome = Err(LaunchError::WorldGone(steps));
                     }
                     break;

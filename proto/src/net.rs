@@ -178,10 +178,12 @@ pub struct NetReport {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ReportMsg {
     Step(NetReport),
-    /// The world finished (`completed` false: stopped early) after `steps` steps.
+    /// The world finished (`completed` false: stopped early) after `steps` steps;
+    /// `requested`: it stopped because a control-plane stop asked it to.
     Done {
         steps: u64,
         completed: bool,
+        requested: bool,
     },
 }
 
@@ -223,7 +225,7 @@ mod tests {
         assert_eq!(decode::<Tick>(&encode(&t).unwrap()).unwrap(), t);
         let b = IntentBatch { step: 2, intents: vec![], idle: vec![3], counters: HostCounters::default() };
         assert_eq!(decode::<IntentBatch>(&encode(&b).unwrap()).unwrap(), b);
-        let r = ReportMsg::Done { steps: 5, completed: true };
+        let r = ReportMsg::Done { steps: 5, completed: true, requested: false };
         assert_eq!(decode::<ReportMsg>(&encode(&r).unwrap()).unwrap(), r);
     }
 }

@@ -136,7 +136,8 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         .await
         .map_err(zerr)?;
     spawn_signal_watch(tx.clone());
-    let (info, zenoh_rt) = zenoh_bus::fetch_run_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
+    let (info, zenoh_rt) =
+        zenoh_bus::fetch_run_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
     if range.last >= info.spec.agents {
         bail!("agents {range} outside the run's {} agents", info.spec.agents);
     }

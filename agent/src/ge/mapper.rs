@@ -137,7 +137,13 @@ impl Mapper {
 
     /// The literal loop, for tests that check the fast path against it.
     #[cfg(test)]
-    pub(crate) fn map_literal(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits, out: &mut String) -> MapStats {
+    pub(crate) fn map_literal(
+        &mut self,
+        grammar: &Grammar,
+        genome: &[u32],
+        limits: MapLimits,
+        out: &mut String,
+    ) -> MapStats {
         out.clear();
         self.run::<true>(grammar, genome, limits, out)
     }

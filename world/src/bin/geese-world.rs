@@ -178,7 +178,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         Ok(c) => (server.steps_done, *c),
         Err(_) => (server.steps_done, false),
     };
-    let done = ReportMsg::Done { steps, completed };
+    let done = ReportMsg::Done { steps, completed, requested: server.stop_requested };
     if let Ok(b) = encode(&done) {
         let _ = zenoh_bus::put(&session, &keys::report(&run), b).await;
     }
@@ -443,6 +443,8 @@ struct Server<'a> {
     /// Perturbations received on the control plane, applied between steps.
     scheduled: Vec<(u64, geese_proto::Perturbation)>,
     stop: bool,
+    /// The stop came from a control-plane `Stop` (a clean early end, not a failure).
+    stop_requested: bool,
     /// The live set last announced in a tick.
     announced: Option<Vec<u32>>,
     percept_keys: HashMap<u32, String>,
@@ -478,6 +480,7 @@ impl<'a> Server<'a> {
             revive: Vec::new(),
             scheduled: Vec::new(),
             stop: false,
+            stop_requested: false,
             announced: None,
             percept_keys: HashMap::new(),
             loss_stream,
@@ -721,7 +724,10 @@ impl<'a> Server<'a> {
                 _ => {}
             },
             Event::Ctl(bytes) => match decode::<Control>(&bytes) {
-                Ok(Control::Stop) => self.stop = true,
+                Ok(Control::Stop) => {
+                    self.stop = true;
+                    self.stop_requested = true;
+                }
                 Ok(Control::Schedule { at_step, change }) => self.scheduled.push((at_step, change)),
                 Ok(Control::Start) => {}
                 Err(_) => self.counters.hostile += 1,
