@@ -2,12 +2,15 @@
 //!
 //! Why this exists: D is the fitness every new individual is born with, so it is
 //! computed for every offspring of every genetic step. Instead of building an XML tree it
-//! makes one pass over the phenotype bytes, reproducing ElementTree's view: every element
+//! runs a small state machine over tokens, reproducing ElementTree's view: every element
 //! is visited in document order; elements tagged `Sequence`/`Selector` are skipped; any
 //! other element contributes its text (the characters right after its start tag up to
 //! the next tag), cut at the first `_`. Only the counts of the nine behaviour names,
-//! whether any other name occurred, and the total are needed, so nothing is allocated.
-//! The pass accepts exactly what the [`super::phenotype`] tokenizer accepts (a test
+//! whether any other name occurred, and the total are needed. The tokens of each run of
+//! grammar terminals are scanned once when the grammar is compiled
+//! (`ge::compiled`), so the mapper scores an offspring without writing its
+//! phenotype (`DiversityScan`, `RunEffect`); [`diversity`] of a string feeds the same
+//! machine. It accepts exactly what the [`super::phenotype`] tokenizer accepts (a test
 //! checks the two against each other), except that end-tag names are not matched
 //! against their start tags.
 //!
@@ -78,93 +81,15 @@ fn valid_name(name: &[u8]) -> bool {
     !name.is_empty() && name.iter().all(|&c| !is_xml_space(c) && c != b'/' && c != b'[' && c != b'<')
 }
 
-/// Single pass over the bytes: the same acceptance rules and counts as walking the
-/// [`super::phenotype`] tokenizer's tokens (checked against it in the tests), without
-/// building tokens. `None` = not well-formed.
+/// The counts of a phenotype: tokenised as one run and fed to [`DiversityScan`], the
+/// same state machine the mapper drives run by run; the acceptance rules are those of
+/// the [`super::phenotype`] tokenizer (checked against it in the tests). `None` = not
+/// well-formed.
 fn count(phenotype: &str) -> Option<Counts> {
-    let b = phenotype.as_bytes();
-    let n = b.len();
-    let mut c = Counts::default();
-    let mut i = 0usize;
-    let mut depth = 0usize;
-    let mut root_done = false;
-    while i < n {
-        // Text up to the next tag; outside the root it must be white space.
-        let text_start = i;
-        while i < n && !is_tag_open(b[i]) {
-            i += 1;
-        }
-        if depth == 0 && !b[text_start..i].iter().all(|&c| is_xml_space(c)) {
-            return None;
-        }
-        if i >= n {
-            break;
-        }
-        let inner_start = i + 1;
-        i = inner_start;
-        while i < n && b[i] != b']' && b[i] != b'>' {
-            i += 1;
-        }
-        if i >= n {
-            return None;
-        }
-        let inner = &b[inner_start..i];
-        i += 1;
-        match inner.first() {
-            None | Some(b'!') => return None,
-            Some(b'?') => {
-                if inner.len() < 2 || inner[inner.len() - 1] != b'?' || depth > 0 {
-                    return None;
-                }
-            }
-            Some(b'/') => {
-                let mut name = &inner[1..];
-                while let [rest @ .., last] = name {
-                    if !is_xml_space(*last) {
-                        break;
-                    }
-                    name = rest;
-                }
-                if !valid_name(name) || depth == 0 {
-                    return None;
-                }
-                depth -= 1;
-                root_done = depth == 0;
-            }
-            Some(_) => {
-                if root_done {
-                    return None;
-                }
-                let (body, self_closing) = match inner {
-                    [body @ .., b'/'] => (body, true),
-                    _ => (inner, false),
-                };
-                let name_len = body.iter().position(|&c| is_xml_space(c)).unwrap_or(body.len());
-                let name = &body[..name_len];
-                if !valid_name(name) {
-                    return None;
-                }
-                if name != b"Sequence" && name != b"Selector" {
-                    if self_closing {
-                        c.add(b"");
-                    } else {
-                        // ElementTree's `text`: up to the next tag (absent text = "").
-                        let text_start = i;
-                        while i < n && !is_tag_open(b[i]) {
-                            i += 1;
-                        }
-                        c.add(&b[text_start..i]);
-                    }
-                }
-                if self_closing {
-                    root_done = depth == 0;
-                } else {
-                    depth += 1;
-                }
-            }
-        }
-    }
-    (depth == 0 && root_done).then_some(c)
+    let toks = tokenize_run(phenotype)?;
+    let mut scan = DiversityScan::default();
+    scan.feed(&toks);
+    scan.finish_counts()
 }
 
 /// One token of a terminal run, pre-scanned for [`DiversityScan`]: the same tokens
@@ -481,14 +406,15 @@ impl DiversityScan {
         }
     }
 
+    /// The counts of everything fed since the last reset (`None` if not well-formed).
+    fn finish_counts(&mut self) -> Option<Counts> {
+        self.end_text();
+        (!self.bad && self.depth == 0 && self.root_done).then_some(self.counts)
+    }
+
     /// D of everything fed since the last reset (NaN if not well-formed).
     pub(crate) fn finish(&mut self) -> f64 {
-        self.end_text();
-        if self.bad || self.depth != 0 || !self.root_done {
-            f64::NAN
-        } else {
-            score(&self.counts)
-        }
+        self.finish_counts().map_or(f64::NAN, |c| score(&c))
     }
 }
 
