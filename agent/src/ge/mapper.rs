@@ -86,8 +86,8 @@ impl Mapper {
 
     /// Map and score: the statistics and the diversity D of the phenotype (NaN when the
     /// mapping is invalid), without building the phenotype string when the grammar
-    /// allows it (see [`super::compiled`]). Equal, bit for bit, to
-    /// [`super::diversity`] of [`Mapper::map_into`]'s output.
+    /// allows it (runs of terminals pre-scanned when the grammar is compiled). Equal, bit for bit, to
+    /// [`super::diversity()`] of [`Mapper::map_into`]'s output.
     pub fn map_scored(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> (MapStats, f64) {
         let c = grammar.compiled();
         if limits.max_wraps == 0 && c.scored_from_runs {
@@ -148,7 +148,7 @@ impl Mapper {
         self.run::<true>(grammar, genome, limits, out)
     }
 
-    /// The PonyGE2 loop for `max_wraps = 0` over runs of terminals ([`super::compiled`]):
+    /// The PonyGE2 loop for `max_wraps = 0` over runs of terminals (`ge::compiled`):
     /// same validity, used codons, depth and output as [`Mapper::run`] symbol by symbol.
     ///
     /// How the literal loop's rules carry over: a run is popped in one go because the
