@@ -164,48 +164,36 @@ pub struct Learner {
     regime: Regime,
     expected: Vec<AgentId>,
     have_percept: bool,
-    received: ReceivedGenes,
     workspace: ge::Workspace,
 }
 
-/// The mapping of each current cell-mate's gene, by sender. A cell-mate offers the same
-/// gene step after step until it evolves, so most arrivals were mapped the step before;
-/// mapping them again was most of the cost of lateral transfer in crowded cells. Only
-/// the senders of the latest step are kept, so memory stays bounded by the cell.
+/// The mapping of the gene each sender offered last, shared by every learner of a
+/// process (the in-process trial, or one agent process). A sender offers the same gene
+/// step after step until it evolves, and all its cell-mates receive it: without the
+/// cache every receiver mapped every arriving gene again, k² mappings per crowded cell
+/// per step instead of at most k. Memory is one genome per sender seen.
 #[derive(Default)]
-struct ReceivedGenes {
-    /// (sender, individual), sorted by sender.
-    last: Vec<(AgentId, Individual)>,
-    this: Vec<(AgentId, Individual)>,
+pub struct GeneCache {
+    by_sender: std::collections::HashMap<AgentId, Individual>,
     mapper: ge::Mapper,
 }
 
-impl ReceivedGenes {
-    /// The evaluated individual of `from`'s `genome` (a copy; its fitness is the caller's
-    /// to set). Calls within one step must come in increasing sender order.
-    fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &[u32], params: &ge::GeParams) -> Individual {
-        let ind = match self.last.binary_search_by_key(&from, |(id, _)| *id) {
-            Ok(k) if self.last[k].1.genome == genome => self.last[k].1.clone(),
-            _ => ge::evaluate_stats_with(&mut self.mapper, grammar, genome.to_vec(), params),
-        };
-        self.this.push((from, ind.clone()));
-        ind
+impl GeneCache {
+    pub fn new() -> GeneCache {
+        GeneCache::default()
     }
 
-    /// Close a step whose genes came from `senders` (sorted): keep what was evaluated in
-    /// it, and the earlier entries of those senders that were not evaluated this time.
-    fn end_step(&mut self, senders: impl Iterator<Item = AgentId>) {
-        for id in senders {
-            if self.this.binary_search_by_key(&id, |(s, _)| *s).is_err() {
-                if let Ok(k) = self.last.binary_search_by_key(&id, |(s, _)| *s) {
-                    let entry = std::mem::take(&mut self.last[k].1);
-                    self.this.push((id, entry));
-                }
+    /// The evaluated individual of `from`'s `genome` (a copy; its fitness is the caller's
+    /// to set).
+    fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &[u32], params: &ge::GeParams) -> Individual {
+        match self.by_sender.get(&from) {
+            Some(ind) if ind.genome == genome => ind.clone(),
+            _ => {
+                let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome.to_vec(), params);
+                self.by_sender.insert(from, ind.clone());
+                ind
             }
         }
-        self.this.sort_by_key(|(id, _)| *id);
-        std::mem::swap(&mut self.last, &mut self.this);
-        self.this.clear();
     }
 }
 
@@ -253,7 +241,6 @@ impl Learner {
             regime: Regime::default(),
             expected: Vec::new(),
             have_percept: false,
-            received: ReceivedGenes::default(),
             workspace: ge::Workspace::default(),
             view,
             cfg,
@@ -296,7 +283,9 @@ impl Learner {
     /// Phase 2: act, learn, and return the intent. `genes` are the gene messages that
     /// arrived from the cell (any order; foreign, stale, duplicate and own messages are
     /// ignored). Without a percept the agent idles: an empty intent.
-    pub fn finish_step(&mut self, genes: &[GeneMsg]) -> Intent {
+    ///
+    /// `cache` holds the mapped genes of senders, shared by the learners of a process.
+    pub fn finish_step(&mut self, genes: &[GeneMsg], cache: &mut GeneCache) -> Intent {
         let mut stats = AgentStats::default();
         if !self.have_percept {
             return Intent { step: self.step, agent: self.id, heading: self.view.heading, ops: Vec::new(), stats };
@@ -316,7 +305,7 @@ impl Learner {
         };
         // 6. sense: lateral transfer through the IP filter.
         if self.regime.lateral_transfer {
-            stats.lt_rate = self.lateral_transfer(genes, &mut stats.genes_lost);
+            stats.lt_rate = self.lateral_transfer(genes, &mut stats.genes_lost, cache);
         }
         // 7–8. genetic operators and update.
         if self.pool.len() >= self.cfg.st {
@@ -347,7 +336,7 @@ impl Learner {
     /// Candidates = this agent plus the cell-mates whose genes arrived, in id order; each
     /// kept with probability IP; if more than one survives all survivors' genes go to the
     /// pool. Returns the number of survivors.
-    fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32) -> u32 {
+    fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32, cache: &mut GeneCache) -> u32 {
         let mut arrived: Vec<&GeneMsg> = Vec::with_capacity(self.expected.len());
         for &mate in &self.expected {
             let msg = genes.iter().find(|g| g.from == mate && g.step == self.step);
@@ -386,7 +375,7 @@ impl Learner {
                 let ind = match s {
                     None => self.gene.clone(),
                     Some(g) => {
-                        let mut ind = self.received.evaluate(&self.grammar, g.from, &g.genome, &self.cfg.ge);
+                        let mut ind = cache.evaluate(&self.grammar, g.from, &g.genome, &self.cfg.ge);
                         if !ind.valid() {
                             *lost += 1;
                             continue;
@@ -398,7 +387,6 @@ impl Learner {
                 self.pool.push(ind);
             }
         }
-        self.received.end_step(arrived.iter().map(|g| g.from));
         survivors.len() as u32
     }
 

@@ -15,4 +15,4 @@ pub mod learner;
 pub mod leaves;
 pub mod view;
 
-pub use learner::{FitnessVariant, Learner, LearnerConfig};
+pub use learner::{FitnessVariant, GeneCache, Learner, LearnerConfig};

@@ -5,7 +5,7 @@
 //! to the world, which resolves them in agent-id order. The distributed runtime drives the
 //! very same [`World`] and [`Learner`] code, which is why the two agree step for step.
 use crate::config::RunSpec;
-use geese_agent::Learner;
+use geese_agent::{GeneCache, Learner};
 use geese_proto::membus::Mailboxes;
 use geese_proto::{GeneMsg, Intent, StepReport};
 use geese_world::World;
@@ -63,6 +63,7 @@ pub struct Trial {
     pub agents: Vec<Learner>,
     genes: Mailboxes<GeneMsg>,
     intents: Vec<Option<Intent>>,
+    gene_cache: GeneCache,
     threshold: f64,
     summary: TrialSummary,
 }
@@ -84,6 +85,7 @@ impl Trial {
         Ok(Trial {
             genes: Mailboxes::new(geom.cell_count()),
             intents: vec![None; cfg.world.agents as usize],
+            gene_cache: GeneCache::new(),
             threshold: cfg.threshold,
             summary: TrialSummary::new(cfg.seed),
             world,
@@ -118,7 +120,7 @@ impl Trial {
             }
         }
         for ((agent, cell), slot) in self.agents.iter_mut().zip(&cells).zip(self.intents.iter_mut()) {
-            *slot = cell.map(|pi| agent.finish_step(self.genes.get(percepts[pi].cell)));
+            *slot = cell.map(|pi| agent.finish_step(self.genes.get(percepts[pi].cell), &mut self.gene_cache));
         }
         let rep = self.world.resolve(&self.intents);
         self.record(&rep);

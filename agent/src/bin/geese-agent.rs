@@ -26,7 +26,7 @@
 use anyhow::{bail, Context, Result};
 use clap::{Parser, ValueEnum};
 use geese_agent::ge::Grammar;
-use geese_agent::{Learner, LearnerConfig};
+use geese_agent::{GeneCache, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{loss_draw, GeneBatch, HostCounters, IntentBatch, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL};
 use geese_proto::seed::{derive, Owner, Purpose};
@@ -234,6 +234,8 @@ struct Host {
     info: RunInfo,
     geom: Geometry,
     learners: Vec<Learner>,
+    /// Mapped genes of senders, shared by this process's learners.
+    gene_cache: GeneCache,
     loss_streams: Vec<u64>,
     tx: UnboundedSender<Event>,
     wide: bool,
@@ -296,6 +298,7 @@ impl Host {
             geom,
             info,
             learners,
+            gene_cache: GeneCache::new(),
             loss_streams,
             tx,
             wide,
@@ -665,7 +668,7 @@ impl Host {
                 }
                 v
             });
-            intents.push(self.learners[k].finish_step(genes));
+            intents.push(self.learners[k].finish_step(genes, &mut self.gene_cache));
         }
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
