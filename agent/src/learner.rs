@@ -338,8 +338,13 @@ impl Learner {
     /// pool. Returns the number of survivors.
     fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32, cache: &mut GeneCache) -> u32 {
         let mut arrived: Vec<&GeneMsg> = Vec::with_capacity(self.expected.len());
+        // This step's messages by sender (a stable sort keeps the first of duplicates
+        // first), so a crowded cell costs k log k per agent rather than k².
+        let mut by_sender: Vec<&GeneMsg> = genes.iter().filter(|g| g.step == self.step).collect();
+        by_sender.sort_by_key(|g| g.from);
         for &mate in &self.expected {
-            let msg = genes.iter().find(|g| g.from == mate && g.step == self.step);
+            let first = by_sender.partition_point(|g| g.from < mate);
+            let msg = by_sender.get(first).copied().filter(|g| g.from == mate);
             match msg {
                 Some(g) if g.genome.len() <= self.cfg.ge.max_genome_length && g.fitness.is_finite() => {
                     // Injected receiver-side loss.
