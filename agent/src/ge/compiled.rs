@@ -148,12 +148,15 @@ impl Compiled {
 
 /// What the mapper does with each run it pops.
 pub(crate) trait RunSink {
+    /// Whether [`RunSink::run`] does anything (the mapper skips the run lookup if not).
+    const WANTS_RUNS: bool = true;
     fn run(&mut self, run: &Run);
 }
 
 /// Statistics only.
 pub(crate) struct NoOutput;
 impl RunSink for NoOutput {
+    const WANTS_RUNS: bool = false;
     #[inline]
     fn run(&mut self, _: &Run) {}
 }

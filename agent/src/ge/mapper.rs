@@ -155,7 +155,8 @@ impl Mapper {
     /// literal loop's checks cannot change between its terminals (no codon is read), except
     /// the depth cut-off, which stops after the first terminal of a run deeper than the
     /// limit. With no wraps allowed, the first iteration that finds every codon used while
-    /// a non-terminal is pending is the last: it processes one symbol and stops.
+    /// a non-terminal is pending is the last: it processes one symbol and, since no
+    /// alternative is empty, leaves the stack non-empty, so the mapping is invalid.
     ///
     /// Two checks stop a mapping as soon as it is certain to be invalid, instead of
     /// running to the end of a long genome (a third of the offspring are invalid, and
@@ -192,35 +193,22 @@ impl Mapper {
             }
             let d = (entry >> 32) as usize;
             let code = entry as u32;
-            if used == n && pending_nts > 0 {
-                // The wrap iteration: one more symbol, then stop.
-                stack.pop();
-                max_depth = max_depth.max(d);
-                if u64::from(code) & PACKED_NT != 0 {
-                    let rule = &c.rules[(u64::from(code) & !PACKED_NT) as usize];
-                    let alt = &rule.alts[fast_mod(genome[0], rule.magic, rule.alts.len() as u32) as usize];
-                    used += 1;
-                    let child_depth = ((d + 1) as u64) << 32;
-                    stack.extend(alt.items_rev.iter().map(|&x| x | child_depth));
-                } else {
-                    // A terminal is popped; the pending non-terminal keeps the stack
-                    // non-empty, so the mapping is invalid.
-                    stack.push(entry);
-                }
-                break;
-            }
+            // The literal loop's wrap iteration (every codon used while a non-terminal is
+            // pending) cannot come: `need` stops the mapping first.
+            debug_assert!(!(used == n && pending_nts > 0));
             stack.pop();
             if d > max_depth {
                 max_depth = d;
             }
             if u64::from(code) & PACKED_NT == 0 {
-                let run = &c.runs[code as usize];
-                if d > depth_limit && run.terminals > 1 {
+                if d > depth_limit && c.runs[code as usize].terminals > 1 {
                     // The literal loop stops after this run's first terminal.
                     stack.push(entry);
                     break;
                 }
-                sink.run(run);
+                if S::WANTS_RUNS {
+                    sink.run(&c.runs[code as usize]);
+                }
                 continue;
             }
             pending_nts -= 1;
