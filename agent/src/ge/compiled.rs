@@ -29,7 +29,12 @@ pub(crate) struct Run {
 /// run id; the mapper ORs the depth into the high 32 bits.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(crate) struct CAlt {
+    /// The items after the leading run (all items if the alternative starts with a
+    /// non-terminal), right to left.
     pub(crate) items_rev: Box<[u64]>,
+    /// The run the alternative starts with, if any: the mapper handles it on expansion,
+    /// without pushing it (it would be popped right away).
+    pub(crate) lead: Option<u32>,
     pub(crate) nt_count: u32,
     /// Codons the alternative's non-terminals need at least (sum of their `min_codons`).
     pub(crate) child_codons: u32,
@@ -94,8 +99,12 @@ impl Compiled {
                     }
                 }
                 flush(&mut pending, &mut items, &mut runs);
+                let lead = match items.first() {
+                    Some(&x) if x & PACKED_NT == 0 => Some(items.remove(0) as u32),
+                    _ => None,
+                };
                 items.reverse();
-                alts.push(CAlt { items_rev: items.into(), nt_count: alt.nt_count() as u32, child_codons: 0 });
+                alts.push(CAlt { items_rev: items.into(), lead, nt_count: alt.nt_count() as u32, child_codons: 0 });
             }
             alts.shrink_to_fit();
             rules.push(CRule { alts: alts.into(), magic: rule.mod_magic, min_steps: rule.min_steps(), min_codons: 0 });

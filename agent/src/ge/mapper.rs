@@ -225,6 +225,19 @@ impl Mapper {
                 break;
             }
             let child_depth = ((d + 1) as u64) << 32;
+            if let Some(lead) = alt.lead {
+                // The literal loop pushes the alternative and pops its leading run next,
+                // with the checks of a loop iteration; the rest of the alternative is
+                // still on the stack then.
+                let not_last = !stack.is_empty() || !alt.items_rev.is_empty();
+                let run = &c.runs[lead as usize];
+                if max_depth > depth_limit || (d + 1 > depth_limit && (run.terminals > 1 || not_last)) {
+                    stack.push(u64::from(lead) | child_depth);
+                    break;
+                }
+                max_depth = max_depth.max(d + 1);
+                sink.run(run);
+            }
             stack.extend(alt.items_rev.iter().map(|&x| x | child_depth));
             pending_nts += alt.nt_count as usize;
         }
