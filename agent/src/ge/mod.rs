@@ -5,7 +5,8 @@
 //! step, and the phenotype tree is only built for the gene an agent adopts.
 //!
 //! - [`grammar`]: BNF parsing with PonyGE2's conventions and the §5.2 pre-computation.
-//! - [`mapper`]: the linear genome → phenotype mapper of §5.4.
+//! - [`mapper`]: the linear genome → phenotype mapper of §5.4, over the grammar's
+//!   compiled form (`compiled`: runs of terminals, pre-scanned for D).
 //! - [`init`]: PonyGE2's `uniform_tree` random initialisation (§5.3).
 //! - [`phenotype`]: bracket phenotype string → composite tree with the §4.3 quirk.
 //! - [`mod@diversity`]: the `bt_diversity` fitness D of §5.5.
