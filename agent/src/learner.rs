@@ -175,6 +175,9 @@ pub struct Learner {
 #[derive(Default)]
 pub struct GeneCache {
     by_sender: std::collections::HashMap<AgentId, Individual>,
+    /// The grammar (by address) and limits the entries were mapped with: learners that
+    /// map differently never see each other's entries.
+    mapped_with: Option<(usize, ge::MapLimits)>,
     mapper: ge::Mapper,
 }
 
@@ -186,6 +189,11 @@ impl GeneCache {
     /// The evaluated individual of `from`'s `genome` (a copy; its fitness is the caller's
     /// to set).
     fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &[u32], params: &ge::GeParams) -> Individual {
+        let key = (grammar as *const Grammar as usize, params.map_limits());
+        if self.mapped_with != Some(key) {
+            self.by_sender.clear();
+            self.mapped_with = Some(key);
+        }
         match self.by_sender.get(&from) {
             Some(ind) if ind.genome == genome => ind.clone(),
             _ => {
@@ -417,5 +425,39 @@ impl Learner {
         self.tree = tree;
         self.visited.clear();
         self.age = 0;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grammars;
+
+    fn grammar(name: &str) -> Grammar {
+        Grammar::parse(grammars::builtin(name).expect("built-in grammar")).expect("parses")
+    }
+
+    #[test]
+    fn gene_cache_reuses_a_senders_gene_and_never_mixes_grammars() {
+        let forage = grammar("betr-foraging-avoid");
+        let sf = grammar("geese-bt-foraging");
+        let p = ge::GeParams::default();
+        let genome: Vec<u32> = vec![
+            1213, 1114, 267, 757, 1875, 1236, 970, 1281, 1189, 134, 1240, 26, 1861, 1715, 960, 531, 1128, 479, 392,
+        ];
+        let mut cache = GeneCache::new();
+        let a = cache.evaluate(&forage, 3, &genome, &p);
+        let fresh = ge::evaluate(&forage, genome.clone(), &p);
+        assert!(a.valid());
+        assert_eq!((a.used_codons, a.depth), (fresh.used_codons, fresh.depth));
+        // Same sender, same gene: served from the cache; a changed gene is mapped anew.
+        let b = cache.evaluate(&forage, 3, &genome, &p);
+        assert_eq!((b.genome, b.used_codons, b.depth), (genome.clone(), a.used_codons, a.depth));
+        let other = vec![0u32; 20];
+        assert!(!cache.evaluate(&forage, 3, &other, &p).valid());
+        // Another grammar maps the same genome in its own way.
+        let c = cache.evaluate(&sf, 3, &genome, &p);
+        let want = ge::evaluate(&sf, genome.clone(), &p);
+        assert_eq!((c.valid(), c.used_codons, c.depth), (want.valid(), want.used_codons, want.depth));
     }
 }
