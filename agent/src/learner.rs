@@ -9,6 +9,8 @@
 //! The order inside `finish_step` is the reference code's (§6.2): tick, visited cells,
 //! fitness, lateral transfer into the pool, genetic operators, update. Genes are copied,
 //! never shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires.
+//! The learners of one process share a [`GeneCache`], so a received gene is mapped once
+//! for all its receivers; each pool still gets its own copy.
 use crate::bt::{Bt, BuildError};
 use crate::ge::{self, GeParams, Grammar, Individual};
 use crate::view::View;

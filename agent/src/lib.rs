@@ -7,7 +7,8 @@
 //! - [`bt`]: the behaviour-tree engine (py_trees semantics, stale statuses included).
 //! - [`leaves`]: conditions, primitive and composite actions.
 //! - [`view`]: an agent's local world model, blackboard and static memory for one tick.
-//! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness).
+//! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness),
+//!   and the per-process [`GeneCache`] of received genes' mappings.
 pub mod bt;
 pub mod ge;
 pub mod grammars;
