@@ -27,6 +27,20 @@ pub struct MapLimits {
     pub max_wraps: usize,
 }
 
+impl MapLimits {
+    /// The depth limit as a bound (no limit = `usize::MAX`).
+    fn depth_cap(&self) -> usize {
+        if self.max_tree_depth == 0 {
+            usize::MAX
+        } else {
+            self.max_tree_depth
+        }
+    }
+}
+
+/// What an empty genome maps to (PonyGE2 would divide by zero).
+const EMPTY_GENOME: MapStats = MapStats { valid: false, used_codons: 0, depth: 1 };
+
 impl Default for MapLimits {
     fn default() -> Self {
         MapLimits { max_tree_depth: 10, max_wraps: 0 }
@@ -66,6 +80,15 @@ impl Mapper {
         Mapper { stack: Vec::with_capacity(64), scan: DiversityScan::default(), text: String::new() }
     }
 
+    /// The stack holding only the start rule at depth 1. Entries: the packed symbol in
+    /// the low 32 bits (rule id with [`PACKED_NT`], or a terminal / run id), the depth in
+    /// the high 32 bits.
+    fn start_stack(&mut self, start: u32) -> &mut Vec<u64> {
+        self.stack.clear();
+        self.stack.push(pack_symbol(Symbol::NonTerminal(start)) | (1 << 32));
+        &mut self.stack
+    }
+
     /// Map without building the phenotype.
     pub fn map_stats(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> MapStats {
         if limits.max_wraps == 0 {
@@ -86,23 +109,10 @@ impl Mapper {
 
     /// Map and score: the statistics and the diversity D of the phenotype (NaN when the
     /// mapping is invalid), without building the phenotype string when the grammar
-    /// allows it (runs of terminals pre-scanned when the grammar is compiled). Equal, bit for bit, to
-    /// [`super::diversity()`] of [`Mapper::map_into`]'s output.
+    /// allows it (runs of terminals pre-scanned when the grammar is compiled). Equal,
+    /// bit for bit, to [`super::diversity()`] of [`Mapper::map_into`]'s output.
     pub fn map_scored(&mut self, grammar: &Grammar, genome: &[u32], limits: MapLimits) -> (MapStats, f64) {
-        let c = grammar.compiled();
-        if limits.max_wraps == 0 && c.scored_from_runs {
-            let mut scan = std::mem::take(&mut self.scan);
-            scan.reset();
-            let st = self.run_runs(c, grammar.start(), genome, limits, &mut scan);
-            let d = if st.valid { scan.finish() } else { f64::NAN };
-            self.scan = scan;
-            return (st, d);
-        }
-        let mut out = std::mem::take(&mut self.text);
-        let st = self.map_into(grammar, genome, limits, &mut out);
-        let d = if st.valid { diversity(&out) } else { f64::NAN };
-        self.text = out;
-        (st, d)
+        self.scored(grammar, genome, limits, None)
     }
 
     /// Map, write the phenotype into `out` (cleared first) and score it, in one pass
@@ -114,18 +124,37 @@ impl Mapper {
         limits: MapLimits,
         out: &mut String,
     ) -> (MapStats, f64) {
-        let c = grammar.compiled();
         out.clear();
+        self.scored(grammar, genome, limits, Some(out))
+    }
+
+    /// Score from the runs when the grammar allows it (writing the phenotype too if
+    /// `out` is given), else from the phenotype string (the caller's or a scratch one).
+    fn scored(
+        &mut self,
+        grammar: &Grammar,
+        genome: &[u32],
+        limits: MapLimits,
+        out: Option<&mut String>,
+    ) -> (MapStats, f64) {
+        let c = grammar.compiled();
         if limits.max_wraps == 0 && c.scored_from_runs {
             let mut scan = std::mem::take(&mut self.scan);
             scan.reset();
-            let st = self.run_runs(c, grammar.start(), genome, limits, &mut TextAndScore(out, &mut scan));
+            let st = match out {
+                Some(out) => self.run_runs(c, grammar.start(), genome, limits, &mut TextAndScore(out, &mut scan)),
+                None => self.run_runs(c, grammar.start(), genome, limits, &mut scan),
+            };
             let d = if st.valid { scan.finish() } else { f64::NAN };
             self.scan = scan;
             return (st, d);
         }
-        let st = self.map_into(grammar, genome, limits, out);
-        (st, if st.valid { diversity(out) } else { f64::NAN })
+        let mut scratch = std::mem::take(&mut self.text);
+        let text = out.unwrap_or(&mut scratch);
+        let st = self.map_into(grammar, genome, limits, text);
+        let d = if st.valid { diversity(text) } else { f64::NAN };
+        self.text = scratch;
+        (st, d)
     }
 
     /// Map and return an owned [`Mapping`].
@@ -176,12 +205,10 @@ impl Mapper {
     ) -> MapStats {
         let n = genome.len();
         if n == 0 {
-            return MapStats { valid: false, used_codons: 0, depth: 1 };
+            return EMPTY_GENOME;
         }
-        let stack = &mut self.stack;
-        stack.clear();
-        stack.push(PACKED_NT | u64::from(start) | (1 << 32));
-        let depth_limit = if limits.max_tree_depth == 0 { usize::MAX } else { limits.max_tree_depth };
+        let stack = self.start_stack(start);
+        let depth_limit = limits.depth_cap();
         let mut pending_nts = 1usize;
         let mut used = 0usize;
         let mut max_depth = 1usize;
@@ -253,20 +280,16 @@ impl Mapper {
     ) -> MapStats {
         let n = genome.len();
         if n == 0 {
-            // PonyGE2 would divide by zero here; an empty genome maps to nothing.
-            return MapStats { valid: false, used_codons: 0, depth: 1 };
+            return EMPTY_GENOME;
         }
-        // Stack entries: packed symbol in the low 32 bits, depth in the high 32 bits.
-        let stack = &mut self.stack;
-        stack.clear();
-        stack.push(pack_symbol(Symbol::NonTerminal(grammar.start())) | (1 << 32));
+        let stack = self.start_stack(grammar.start());
         let mut pending_nts = 1usize;
         let mut used = 0usize;
         // used % n, maintained incrementally (no division in the loop).
         let mut pos = 0usize;
         let mut wraps: i64 = -1;
         let max_wraps = limits.max_wraps as i64;
-        let depth_limit = if limits.max_tree_depth == 0 { usize::MAX } else { limits.max_tree_depth };
+        let depth_limit = limits.depth_cap();
         let mut max_depth = 1usize;
         let rules = grammar.rules();
 

@@ -149,7 +149,7 @@ pub struct Individual {
     /// Whether the genome maps to a phenotype.
     pub valid: bool,
     /// The phenotype string: `None` for an invalid individual, and for a valid one made
-    /// by [`evaluate_stats`] until [`Individual::materialize`] writes it.
+    /// by [`evaluate_stats_with`] until [`Individual::materialize`] writes it.
     pub phenotype: Option<Arc<str>>,
     /// Codons used by the mapping (0 when invalid).
     pub used_codons: usize,
@@ -166,7 +166,7 @@ impl Individual {
     }
 
     /// Write the phenotype of a valid individual if it is not there yet (see
-    /// [`evaluate_stats`]); returns it (`None` when invalid).
+    /// [`evaluate_stats_with`]); returns it (`None` when invalid).
     pub fn materialize(&mut self, grammar: &Grammar, params: &GeParams) -> Option<&Arc<str>> {
         if self.valid && self.phenotype.is_none() {
             let mut text = String::with_capacity(256);
@@ -208,11 +208,7 @@ pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Indiv
 /// [`Individual::materialize`]) and no D (fitness NaN, the caller's to set). This is
 /// what a gene received by lateral transfer needs: in the pool it is ranked by the
 /// sender's fitness, and its phenotype is needed only in the rare case that it wins.
-pub fn evaluate_stats(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
-    evaluate_stats_with(&mut Mapper::new(), grammar, genome, params)
-}
-
-/// [`evaluate_stats`] with the caller's mapper.
+/// `mapper` is the caller's, reused between calls.
 pub fn evaluate_stats_with(mapper: &mut Mapper, grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
     let st = mapper.map_stats(grammar, &genome, params.map_limits());
     Individual {
