@@ -464,7 +464,10 @@ pub fn run_campaign(
                 continue;
             }
             let ok = result.error.is_none();
-            match store.insert(&rec, &result, session, runner.transport()) {
+            match store
+                .insert(&rec, &result, session, runner.transport())
+                .and_then(|()| store.touch_session(session, start.elapsed().as_secs_f64()))
+            {
                 Ok(()) => {
                     if ok {
                         out.done += 1;

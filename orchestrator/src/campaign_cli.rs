@@ -3,9 +3,11 @@
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use geese_orchestrator::campaign::{Campaign, CampaignFile, InProcess, RunOptions, TrialRunner};
+use geese_orchestrator::launch::{NetOptions, OverZenoh};
 use geese_orchestrator::metrics::{EfficiencyVariant, PowerVariant};
 use geese_orchestrator::report::{self, EfficiencyChoice, ReportOptions};
 use geese_orchestrator::store::Store;
+use geese_proto::zenoh_bus::CommonArgs;
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -34,6 +36,18 @@ pub struct CampaignArgs {
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Run every trial distributed: its own world server and N agent processes on this
+    /// machine, over Zenoh (trials then run one at a time unless --jobs says otherwise).
+    #[arg(long, value_name = "N")]
+    pub processes: Option<u32>,
+    /// Agents hosted per agent process [default: the agents split evenly over N].
+    #[arg(long, value_name = "K", requires = "processes")]
+    pub agents_per_process: Option<u32>,
+    /// Directory of geese-world and geese-agent [default: next to geese].
+    #[arg(long, requires = "processes")]
+    pub bin_dir: Option<PathBuf>,
+    #[command(flatten)]
+    pub zenoh: CommonArgs,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -104,11 +118,24 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
     let campaign = Campaign::new(file, text, &stem).with_context(|| format!("campaign {}", a.file.display()))?;
     let db = a.db.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}.sqlite", campaign.name)));
     let mut store = Store::create(&db)?;
-    // The transport is chosen here: a distributed runner (trials over Zenoh) implements
-    // `TrialRunner` and is passed instead of `InProcess`.
-    let runner: &dyn TrialRunner = &InProcess;
+    // The transport is chosen here; both runners report the same steps for a seed.
+    let over_zenoh = a.processes.map(|processes| OverZenoh {
+        opts: NetOptions {
+            processes,
+            agents_per_process: a.agents_per_process,
+            zenoh: a.zenoh.clone(),
+            bin_dir: a.bin_dir.clone(),
+            quiet_children: true,
+            ..NetOptions::default()
+        },
+    });
+    let runner: &dyn TrialRunner = match &over_zenoh {
+        Some(z) => z,
+        None => &InProcess,
+    };
     let plan = campaign.plan();
-    let jobs = a.jobs.unwrap_or(0);
+    // A distributed trial already spreads over the cores: one at a time by default.
+    let jobs = a.jobs.unwrap_or(if over_zenoh.is_some() { 1 } else { 0 });
     let threads = if jobs == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { jobs };
     eprintln!(
         "geese campaign {}: {} conditions × {} task(s) × {} seeds = {} trials, {} at a time ({}), results in {}",
@@ -132,6 +159,10 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         out.failed
     );
     println!("wall time: {:.1} s", out.wall_seconds);
+    let (sessions, total) = store.campaign_wall()?;
+    if sessions > 1 {
+        println!("campaign wall time over {sessions} invocations: {total:.1} s");
+    }
     println!("results: {}  (geese report {})", db.display(), db.display());
     Ok(())
 }

@@ -281,10 +281,46 @@ pub fn find_bin_dir(bin_dir: Option<&Path>) -> Result<PathBuf, LaunchError> {
     Ok(dir)
 }
 
-/// A run name unique to this launch.
+/// A run name unique to this launch (also between launches of one process running
+/// trials in parallel: a counter joins the PID and the clock).
 pub fn unique_run_name() -> String {
+    static LAUNCHES: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let k = LAUNCHES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
-    format!("r{}-{:x}", std::process::id(), nanos & 0xffff_ffff)
+    format!("r{}-{:x}-{k}", std::process::id(), nanos & 0xffff_ffff)
+}
+
+/// Campaign trials over Zenoh (`geese campaign --processes N`): every trial launches its
+/// own world server and agent processes with a unique run name, so trials running in
+/// parallel never hear each other.
+pub struct OverZenoh {
+    pub opts: NetOptions,
+}
+
+impl crate::campaign::TrialRunner for OverZenoh {
+    fn transport(&self) -> &str {
+        "zenoh"
+    }
+
+    fn run(
+        &self,
+        spec: &RunSpec,
+        observe: &mut dyn FnMut(&geese_proto::StepReport),
+    ) -> Result<TrialSummary, crate::campaign::TrialError> {
+        let opts = NetOptions { run: None, ..self.opts.clone() };
+        match run_net(spec, &opts, |r, _| observe(&r.report)) {
+            Ok(out) if out.completed => Ok(out.summary),
+            Ok(out) => Err(format!("the world stopped after {} of {} steps", out.reports, spec.config.steps).into()),
+            // Ctrl-C ends the campaign, it is no failure of the trial: the children are
+            // gone by now and every finished trial is already committed, so a later
+            // invocation resumes where this one stopped.
+            Err(LaunchError::Interrupted) => {
+                eprintln!("interrupted: finished trials are stored; run the campaign again to resume");
+                std::process::exit(130)
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
 }
 
 /// The world server's specification of `spec` under `opts`.

@@ -139,6 +139,8 @@ pub struct StoredTrial {
     pub wall_seconds: f64,
     /// The `geese campaign` invocation (sessions table) that ran it.
     pub session: i64,
+    /// How it ran: "in-process" or "zenoh".
+    pub transport: String,
 }
 
 /// One `geese campaign` invocation; `finished` is false when it was interrupted.
@@ -271,6 +273,35 @@ impl Store {
         Ok(())
     }
 
+    /// Record how long session `id` has run so far, so that a session that is killed
+    /// still counts towards the campaign's wall time.
+    pub fn touch_session(&self, id: i64, wall_seconds: f64) -> Result<(), StoreError> {
+        self.sql(self.conn.execute("UPDATE sessions SET wall_seconds = ?2 WHERE id = ?1", params![id, wall_seconds]))?;
+        Ok(())
+    }
+
+    /// Wall time of the campaign over all its sessions (interrupted ones included) and
+    /// the number of sessions. A session without a recorded wall time (killed before any
+    /// trial finished, or written by an older version) counts from its start to its last
+    /// finished trial.
+    pub fn campaign_wall(&self) -> Result<(usize, f64), StoreError> {
+        let mut stmt = self.sql(self.conn.prepare(
+            "SELECT s.wall_seconds, s.started_unix, (SELECT MAX(t.finished_unix) FROM trials t WHERE t.session = s.id)
+             FROM sessions s",
+        ))?;
+        let rows =
+            self.sql(stmt.query_map([], |r| {
+                Ok((r.get::<_, Option<f64>>(0)?, r.get::<_, i64>(1)?, r.get::<_, Option<i64>>(2)?))
+            }))?;
+        let (mut n, mut total) = (0, 0.0);
+        for row in rows {
+            let (wall, started, last) = self.sql(row)?;
+            n += 1;
+            total += wall.unwrap_or_else(|| last.map_or(0.0, |l| (l - started).max(0) as f64));
+        }
+        Ok((n, total))
+    }
+
     /// Status of a stored trial with this key, checking its configuration is the same.
     pub fn find(&self, rec: &TrialRecord) -> Result<Option<String>, StoreError> {
         let row: Option<(String, String)> = self.sql(
@@ -399,7 +430,7 @@ impl Store {
         let mut st = self.sql(self.conn.prepare(
             "SELECT id, condition, condition_index, x, x_label, series, task, seed, status, error, steps,
                     final_task_pct, max_task_pct, first_step_at_threshold, rows_at_threshold, success, wall_seconds,
-                    session
+                    session, transport
              FROM trials ORDER BY condition_index, task, seed",
         ))?;
         let rows = st.query_map([], |r| {
@@ -429,6 +460,7 @@ impl Store {
                 outcome,
                 wall_seconds: r.get(16)?,
                 session: r.get(17)?,
+                transport: r.get(18)?,
             })
         });
         let rows = self.sql(rows)?;

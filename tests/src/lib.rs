@@ -17,8 +17,14 @@ pub fn bin_path(package: &str, bin: &str) -> PathBuf {
     if release {
         cmd.arg("--release");
     }
-    // The workspace root is the parent of this crate's manifest dir.
-    cmd.current_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/.."));
+    // The workspace root is the parent of the test's manifest dir. Taken from the
+    // environment cargo gives the running test, not baked in at compile time: a build
+    // cache shared between checkouts (CI reuses one target dir) may hold this crate
+    // compiled in another checkout, whose path can be gone or hold other sources.
+    let manifest_dir = std::env::var_os("CARGO_MANIFEST_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    cmd.current_dir(manifest_dir.join(".."));
     let status = cmd.status().expect("run cargo build");
     assert!(status.success(), "building {bin} failed");
     path

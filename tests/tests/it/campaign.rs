@@ -28,7 +28,7 @@ obstacles = [1, 2]
 obstacles_at = [100, 300]
 "#;
 
-fn quiet() -> RunOptions {
+pub(crate) fn quiet() -> RunOptions {
     RunOptions { jobs: 2, retry_failed: false, quiet: true }
 }
 
@@ -167,22 +167,30 @@ fn failed_trials_are_recorded_and_the_campaign_goes_on() {
     assert_eq!(store.trials().expect("trials").len(), 6);
 }
 
-/// Records every step report of every trial.
-#[derive(Default)]
-struct Recorder(Mutex<BTreeMap<String, Vec<StepReport>>>);
+/// Records every step report of every trial `inner` runs, keyed by its perturbations.
+pub(crate) struct Recorder<R> {
+    pub inner: R,
+    pub runs: Mutex<BTreeMap<String, Vec<StepReport>>>,
+}
 
-impl TrialRunner for Recorder {
+impl<R> Recorder<R> {
+    pub fn new(inner: R) -> Self {
+        Recorder { inner, runs: Mutex::default() }
+    }
+}
+
+impl<R: TrialRunner> TrialRunner for Recorder<R> {
     fn transport(&self) -> &str {
-        "in-process"
+        self.inner.transport()
     }
     fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
         let mut reps = Vec::new();
-        let s = InProcess.run(spec, &mut |r| {
+        let s = self.inner.run(spec, &mut |r| {
             reps.push(r.clone());
             observe(r)
         })?;
         let key = serde_json::to_string(&spec.config.perturbations).unwrap_or_default();
-        self.0.lock().expect("lock").insert(key, reps);
+        self.runs.lock().expect("lock").insert(key, reps);
         Ok(s)
     }
 }
@@ -213,10 +221,10 @@ fn perturbation_knobs_act_at_their_step() {
     assert_eq!(c.x_of(1), (1.0, "obstacles=2 obstacles_at=100".to_string()));
     let dir = tempfile::tempdir().expect("tempdir");
     let mut store = Store::create(&dir.path().join("p.sqlite")).expect("db");
-    let rec = Recorder::default();
+    let rec = Recorder::new(InProcess);
     let o = run_campaign(&c, &mut store, &rec, &quiet()).expect("runs");
     assert_eq!(o.done, 2);
-    let runs = rec.0.into_inner().expect("lock");
+    let runs = rec.runs.into_inner().expect("lock");
     let (kill_lt, obstacles): (Vec<_>, Vec<_>) = runs.values().partition(|r| r.iter().any(|s| s.live_agents < 40));
     let r = &kill_lt[0];
     // Killed right after step 20 is resolved; step 20's report is taken after the hooks.

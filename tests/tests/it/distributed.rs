@@ -519,3 +519,49 @@ fn geese_control_perturbs_and_stops_a_running_world() {
     assert!(last_on < at + 100, "lateral transfer still on at step {last_on}, scheduled off after {at}");
     assert!(end >= last_on + 40, "too few steps after the change ({last_on}..{end})");
 }
+
+#[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
+fn campaign_over_zenoh_equals_the_campaign_in_process() {
+    use super::campaign::{quiet, Recorder};
+    use geese_orchestrator::campaign::{run_campaign, Campaign, InProcess};
+    use geese_orchestrator::launch::OverZenoh;
+    use geese_orchestrator::store::Store;
+    // Two perturbed conditions, run-time knobs included (kill, lateral transfer off and
+    // on, obstacles): each trial launches its own world and three agent processes.
+    let text = r#"
+        tasks = ["foraging"]
+        seeds = 1
+        x = "condition"
+        step_stride = 1
+        [base]
+        steps = 120
+        [base.world]
+        agents = 12
+        start = "hub"
+        [[grid]]
+        kill = 0.25
+        kill_at = 20
+        lt_off_at = 40
+        lt_off_for = 20
+        [[grid]]
+        obstacles = 2
+        obstacles_at = 60
+    "#;
+    let c = Campaign::from_toml(text, "over-zenoh").expect("campaign");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let local = Recorder::new(InProcess);
+    let mut db = Store::create(&dir.path().join("local.sqlite")).expect("db");
+    assert_eq!(run_campaign(&c, &mut db, &local, &quiet()).expect("in-process").done, 2);
+    let remote = Recorder::new(OverZenoh { opts: options(3, None) });
+    let mut db = Store::create(&dir.path().join("zenoh.sqlite")).expect("db");
+    let o = run_campaign(&c, &mut db, &remote, &quiet()).expect("over zenoh");
+    assert_eq!((o.done, o.failed), (2, 0), "both trials ran over Zenoh");
+    let trials = db.trials().expect("trials");
+    assert!(trials.iter().all(|t| t.transport == "zenoh"), "transport recorded");
+    let local = local.runs.into_inner().expect("lock");
+    let remote = remote.runs.into_inner().expect("lock");
+    assert_eq!(local.len(), 2);
+    assert!(local.values().any(|r| r.iter().any(|s| s.live_agents < 12)), "the kill knob acted");
+    assert_eq!(local, remote, "per-step reports (task %, digests) differ between transports");
+}
