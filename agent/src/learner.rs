@@ -188,18 +188,22 @@ impl GeneCache {
         GeneCache::default()
     }
 
-    /// The evaluated individual of `from`'s `genome` (a copy; its fitness is the caller's
-    /// to set).
-    fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &[u32], params: &ge::GeParams) -> Individual {
+    /// The evaluated individual of `from`'s `genome` (a copy sharing the codons; its
+    /// fitness is the caller's to set). In one process every receiver holds the very
+    /// genome the sender published, so the address settles most look-ups; genomes that
+    /// arrived over the wire are compared codon by codon.
+    fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &Arc<[u32]>, params: &ge::GeParams) -> Individual {
         let key = (grammar as *const Grammar as usize, params.map_limits());
         if self.mapped_with != Some(key) {
             self.by_sender.clear();
             self.mapped_with = Some(key);
         }
         match self.by_sender.get(&from) {
-            Some(ind) if ind.genome == genome => ind.clone(),
+            // black_box: LLVM otherwise folds the address test into the comparison
+            // (equal addresses compare equal) and compares every codon each time.
+            Some(ind) if std::hint::black_box(Arc::ptr_eq(&ind.genome, genome)) || ind.genome == *genome => ind.clone(),
             _ => {
-                let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome.to_vec(), params);
+                let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome.clone(), params);
                 self.by_sender.insert(from, ind.clone());
                 ind
             }
@@ -444,18 +448,23 @@ mod tests {
         let forage = grammar("betr-foraging-avoid");
         let sf = grammar("geese-bt-foraging");
         let p = ge::GeParams::default();
-        let genome: Vec<u32> = vec![
+        let genome: Arc<[u32]> = Arc::from([
             1213, 1114, 267, 757, 1875, 1236, 970, 1281, 1189, 134, 1240, 26, 1861, 1715, 960, 531, 1128, 479, 392,
-        ];
+        ]);
         let mut cache = GeneCache::new();
         let a = cache.evaluate(&forage, 3, &genome, &p);
         let fresh = ge::evaluate(&forage, genome.clone(), &p);
         assert!(a.valid());
         assert_eq!((a.used_codons, a.depth), (fresh.used_codons, fresh.depth));
-        // Same sender, same gene: served from the cache; a changed gene is mapped anew.
+        // Same sender, same gene: served from the cache (also an equal copy that came
+        // over the wire); a changed gene is mapped anew.
         let b = cache.evaluate(&forage, 3, &genome, &p);
-        assert_eq!((b.genome, b.used_codons, b.depth), (genome.clone(), a.used_codons, a.depth));
-        let other = vec![0u32; 20];
+        assert!(Arc::ptr_eq(&b.genome, &genome));
+        assert_eq!((b.used_codons, b.depth), (a.used_codons, a.depth));
+        let copy: Arc<[u32]> = Arc::from(genome.to_vec());
+        let b = cache.evaluate(&forage, 3, &copy, &p);
+        assert_eq!((&b.genome, b.used_codons, b.depth), (&genome, a.used_codons, a.depth));
+        let other: Arc<[u32]> = Arc::from(vec![0u32; 20]);
         assert!(!cache.evaluate(&forage, 3, &other, &p).valid());
         // Another grammar maps the same genome in its own way.
         let c = cache.evaluate(&sf, 3, &genome, &p);

@@ -41,7 +41,7 @@ mod tests {
 
     #[test]
     fn round_trip_and_rejects() {
-        let g = GeneMsg { step: 3, from: 9, genome: vec![1, 2, 2000], fitness: 1.5 };
+        let g = GeneMsg { step: 3, from: 9, genome: vec![1, 2, 2000].into(), fitness: 1.5 };
         let b = encode(&g).unwrap();
         assert_eq!(decode::<GeneMsg>(&b).unwrap(), g);
         let mut bad = b.clone();

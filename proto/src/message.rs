@@ -136,7 +136,10 @@ pub struct Percept {
 pub struct GeneMsg {
     pub step: u64,
     pub from: AgentId,
-    pub genome: Vec<u32>,
+    /// Shared, not copied: in one process every cell-mate (and the sender's own
+    /// individual) holds the same codons, and the receivers' gene cache recognises a
+    /// genome it mapped by address. On the wire it is a plain sequence of codons.
+    pub genome: std::sync::Arc<[u32]>,
     pub fitness: f64,
 }
 

@@ -145,7 +145,8 @@ impl From<&GeParams> for MapLimits {
 /// A GE individual.
 #[derive(Debug, Clone)]
 pub struct Individual {
-    pub genome: Vec<u32>,
+    /// Shared: pool copies, gene messages and the gene cache hold the same codons.
+    pub genome: Arc<[u32]>,
     /// Whether the genome maps to a phenotype.
     pub valid: bool,
     /// The phenotype string: `None` for an invalid individual, and for a valid one made
@@ -182,12 +183,13 @@ impl Individual {
 impl Default for Individual {
     /// An empty, invalid individual.
     fn default() -> Self {
-        Individual { genome: Vec::new(), valid: false, phenotype: None, used_codons: 0, depth: 0, fitness: f64::NAN }
+        Individual { genome: Arc::from([]), valid: false, phenotype: None, used_codons: 0, depth: 0, fitness: f64::NAN }
     }
 }
 
 /// Map `genome` and give the individual its diversity D (NaN when invalid).
-pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
+pub fn evaluate(grammar: &Grammar, genome: impl Into<Arc<[u32]>>, params: &GeParams) -> Individual {
+    let genome = genome.into();
     let mut buf = String::with_capacity(256);
     let (st, fitness) = Mapper::new().map_into_scored(grammar, &genome, params.map_limits(), &mut buf);
     if st.valid {
@@ -209,7 +211,12 @@ pub fn evaluate(grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Indiv
 /// what a gene received by lateral transfer needs: in the pool it is ranked by the
 /// sender's fitness, and its phenotype is needed only in the rare case that it wins.
 /// `mapper` is the caller's, reused between calls.
-pub fn evaluate_stats_with(mapper: &mut Mapper, grammar: &Grammar, genome: Vec<u32>, params: &GeParams) -> Individual {
+pub fn evaluate_stats_with(
+    mapper: &mut Mapper,
+    grammar: &Grammar,
+    genome: Arc<[u32]>,
+    params: &GeParams,
+) -> Individual {
     let st = mapper.map_stats(grammar, &genome, params.map_limits());
     Individual {
         genome,
@@ -226,7 +233,7 @@ pub fn random_individual<R: Rng + ?Sized>(grammar: &Grammar, params: &GeParams, 
     let d = uniform_tree(grammar, params.codon_size, params.max_tree_depth, rng);
     let fitness = diversity(&d.phenotype);
     Individual {
-        genome: d.genome,
+        genome: d.genome.into(),
         valid: true,
         phenotype: Some(Arc::from(d.phenotype)),
         used_codons: d.used_codons,
@@ -502,7 +509,7 @@ fn step<R: Rng + ?Sized>(
         }
         (Some((Cand::Kid, _)), Some((k, fitness, st))) => {
             let kid = kids[k];
-            let genome = arena[kid.start..kid.start + kid.len].to_vec();
+            let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
                 // Only the winner's phenotype is ever written out.
                 let mut text = String::with_capacity(256);
@@ -642,7 +649,7 @@ mod tests {
         assert_eq!(fitness_cmp(f64::NAN, f64::NAN), Ordering::Equal);
         assert_eq!(fitness_cmp(-0.0, 0.0), Ordering::Equal);
         assert_eq!(fitness_cmp(1.0, 2.0), Ordering::Less);
-        let mk = |tag: u32, f: f64| Individual { genome: vec![tag], fitness: f, ..Individual::default() };
+        let mk = |tag: u32, f: f64| Individual { genome: Arc::from([tag]), fitness: f, ..Individual::default() };
         let mut v = vec![mk(0, f64::NAN), mk(1, 1.0), mk(2, 3.0), mk(3, 1.0), mk(4, f64::NAN), mk(5, 3.0), mk(6, -2.0)];
         sort_by_fitness_desc(&mut v);
         let order: Vec<u32> = v.iter().map(|i| i.genome[0]).collect();
@@ -667,7 +674,7 @@ mod tests {
         let e = genetic_step(&g, &mut pool, &bad, &mut rng).expect_err("bad params");
         assert!(matches!(e, GeError::Params(ParamsError { field: "truncation", .. })), "{e:?}");
         let mut pool = pool_of(&g, &p, &mut rng, 7);
-        pool[0].genome.clear();
+        pool[0].genome = Arc::from([]);
         pool[0].fitness = 100.0;
         let e = genetic_step(&g, &mut pool, &p, &mut rng).expect_err("empty parent");
         assert_eq!(e, GeError::EmptyParent { index: 0 });

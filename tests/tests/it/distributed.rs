@@ -277,7 +277,7 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                             genes: vec![geese_proto::GeneMsg {
                                 step: round + 1,
                                 from: 9,
-                                genome: vec![1, 2],
+                                genome: vec![1, 2].into(),
                                 fitness: 1.0,
                             }],
                             absent: vec![],
