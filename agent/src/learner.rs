@@ -198,10 +198,16 @@ impl GeneCache {
             self.by_sender.clear();
             self.mapped_with = Some(key);
         }
-        match self.by_sender.get(&from) {
+        match self.by_sender.get_mut(&from) {
             // black_box: LLVM otherwise folds the address test into the comparison
             // (equal addresses compare equal) and compares every codon each time.
-            Some(ind) if std::hint::black_box(Arc::ptr_eq(&ind.genome, genome)) || ind.genome == *genome => ind.clone(),
+            Some(ind) if std::hint::black_box(Arc::ptr_eq(&ind.genome, genome)) => ind.clone(),
+            Some(ind) if ind.genome == *genome => {
+                // The same gene decoded anew (it came over the wire): keep this copy, so
+                // the other receivers of this step find it by address.
+                ind.genome = genome.clone();
+                ind.clone()
+            }
             _ => {
                 let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome.clone(), params);
                 self.by_sender.insert(from, ind.clone());

@@ -98,6 +98,10 @@ enum Event {
     Stop,
 }
 
+/// mimalloc: the step loop allocates many small, short-lived buffers.
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() -> Result<()> {
     // Without RUST_LOG: warnings, but not Zenoh's report of data that arrives for a cell
     // subscription just undeclared (harmless: the cell is no longer needed).

@@ -51,6 +51,10 @@ enum Event {
     Signal,
 }
 
+/// mimalloc: the step loop allocates many small, short-lived buffers.
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
