@@ -292,6 +292,10 @@ impl Learner {
             return None;
         }
         self.expected.extend(percept.agents.iter().filter(|a| a.id != self.id && a.live && a.learning).map(|a| a.id));
+        // The world lists them in id order; lateral transfer relies on it.
+        if !self.expected.is_sorted() {
+            self.expected.sort_unstable();
+        }
         Some(GeneMsg { step: self.step, from: self.id, genome: self.gene.genome.clone(), fitness: self.gene.fitness })
     }
 
@@ -359,12 +363,16 @@ impl Learner {
     fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32, cache: &mut GeneCache) -> u32 {
         let mut arrived: Vec<&GeneMsg> = Vec::with_capacity(self.expected.len());
         // This step's messages by sender (a stable sort keeps the first of duplicates
-        // first), so a crowded cell costs k log k per agent rather than k².
+        // first; the transports hand them over sorted, which it checks in one pass), then
+        // one merge walk with the expected mates (sorted by id): k per agent, not k².
         let mut by_sender: Vec<&GeneMsg> = genes.iter().filter(|g| g.step == self.step).collect();
         by_sender.sort_by_key(|g| g.from);
+        let mut next = 0;
         for &mate in &self.expected {
-            let first = by_sender.partition_point(|g| g.from < mate);
-            let msg = by_sender.get(first).copied().filter(|g| g.from == mate);
+            while by_sender.get(next).is_some_and(|g| g.from < mate) {
+                next += 1;
+            }
+            let msg = by_sender.get(next).copied().filter(|g| g.from == mate);
             match msg {
                 Some(g) if g.genome.len() <= self.cfg.ge.max_genome_length && g.fitness.is_finite() => {
                     // Injected receiver-side loss.

@@ -670,6 +670,9 @@ impl Host {
                         v.extend(r.batch.genes.iter().filter(|g| !range.contains(g.from)).cloned());
                     }
                 }
+                // In sender order once per cell (stable: duplicates keep their arrival
+                // order), so that each learner's own stable sort finds it sorted.
+                v.sort_by_key(|g| g.from);
                 v
             });
             intents.push(self.learners[k].finish_step(genes, &mut self.gene_cache));
