@@ -188,6 +188,8 @@ pub fn report_cmd(a: ReportArgs) -> Result<()> {
     }
     let r = report::build(&store, &opts)?;
     r.print(&mut std::io::stdout().lock())?;
+    let (sessions, wall) = store.campaign_wall()?;
+    println!("\ncampaign wall time: {wall:.1} s over {sessions} invocation(s) of geese campaign");
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a.db.file_stem().map(|s| s.to_string_lossy().into_owned());
         a.db.with_file_name(format!("{}-report", stem.unwrap_or_else(|| "results".into())))
