@@ -81,6 +81,8 @@ pub enum CampaignError {
     Store(#[from] StoreError),
     #[error("the thread pool could not start: {0}")]
     Pool(String),
+    #[error("interrupted after {done} finished trial(s); they are stored: run the campaign again to resume")]
+    Interrupted { done: usize },
 }
 
 fn invalid(key: impl Into<String>, reason: impl Into<String>) -> CampaignError {
@@ -360,6 +362,13 @@ pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError
 /// Error of one trial, as recorded in the store.
 pub type TrialError = Box<dyn std::error::Error + Send + Sync>;
 
+/// What a runner returns when the user interrupts it (Ctrl-C): the campaign records no
+/// failure for the trial, starts no further trial and ends with
+/// [`CampaignError::Interrupted`]; finished trials are already committed.
+#[derive(Debug, thiserror::Error)]
+#[error("interrupted")]
+pub struct Interrupted;
+
 /// Runs one trial: the hook where the transport is chosen. The in-process runner is
 /// [`InProcess`]; a runner that starts a world and agent processes over Zenoh implements
 /// the same trait and is handed to [`run_campaign`].
@@ -439,6 +448,7 @@ pub fn run_campaign(
         .build()
         .map_err(|e| CampaignError::Pool(e.to_string()))?;
     let stop = AtomicBool::new(false);
+    let interrupted = AtomicBool::new(false);
     let (tx, rx) = std::sync::mpsc::channel::<(TrialRecord, TrialResult)>();
     let stride = campaign.file.step_stride;
     let mut out = CampaignOutcome { planned: plan.len(), skipped, ..Default::default() };
@@ -446,6 +456,7 @@ pub fn run_campaign(
     std::thread::scope(|s| {
         let pending = &pending;
         let stop = &stop;
+        let interrupted = &interrupted;
         s.spawn(move || {
             pool.install(|| {
                 use rayon::prelude::*;
@@ -454,8 +465,15 @@ pub fn run_campaign(
                         return;
                     }
                     let spec = campaign.spec(t);
-                    let result = run_one(runner, &spec, stride);
-                    let _ = tx.send((rec.clone(), result));
+                    match run_one(runner, &spec, stride) {
+                        Some(result) => {
+                            let _ = tx.send((rec.clone(), result));
+                        }
+                        None => {
+                            interrupted.store(true, Ordering::Relaxed);
+                            stop.store(true, Ordering::Relaxed);
+                        }
+                    }
                 });
             });
         });
@@ -464,10 +482,7 @@ pub fn run_campaign(
                 continue;
             }
             let ok = result.error.is_none();
-            match store
-                .insert(&rec, &result, session, runner.transport())
-                .and_then(|()| store.touch_session(session, start.elapsed().as_secs_f64()))
-            {
+            match store.insert(&rec, &result, session, start.elapsed().as_secs_f64(), runner.transport()) {
                 Ok(()) => {
                     if ok {
                         out.done += 1;
@@ -495,13 +510,17 @@ pub fn run_campaign(
     if let Some(e) = write_error {
         return Err(e.into());
     }
+    if interrupted.load(Ordering::Relaxed) {
+        return Err(CampaignError::Interrupted { done: out.done + out.failed });
+    }
     out.wall_seconds = start.elapsed().as_secs_f64();
     store.end_session(session, &out)?;
     Ok(out)
 }
 
-/// Run one trial, catching errors and panics, and thin its step rows.
-fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> TrialResult {
+/// Run one trial, catching errors and panics, and thin its step rows; `None` when the
+/// runner was interrupted ([`Interrupted`]).
+fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> Option<TrialResult> {
     let steps = spec.config.steps;
     let theta = spec.config.threshold;
     let mut rows: Vec<StepReport> = Vec::new();
@@ -521,15 +540,16 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> TrialResult
             if series.len() as u64 != steps {
                 Some(format!("the runner reported {} of {steps} steps", series.len()))
             } else {
-                return TrialResult {
+                return Some(TrialResult {
                     outcome: metrics::outcome(&series, theta),
                     summary: Some(summary),
                     rows,
                     error: None,
                     wall_seconds: wall,
-                };
+                });
             }
         }
+        Ok(Err(e)) if e.is::<Interrupted>() => return None,
         Ok(Err(e)) => Some(e.to_string()),
         Err(panic) => Some(format!(
             "panic: {}",
@@ -540,13 +560,13 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> TrialResult
                 .unwrap_or_else(|| "unknown".into())
         )),
     };
-    TrialResult {
+    Some(TrialResult {
         outcome: metrics::outcome(&series, theta),
         summary: None,
         rows: Vec::new(),
         error,
         wall_seconds: wall,
-    }
+    })
 }
 
 #[cfg(test)]

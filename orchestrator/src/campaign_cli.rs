@@ -2,7 +2,7 @@
 //! argument parsing and printing around the library's campaign, store and report.
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use geese_orchestrator::campaign::{Campaign, CampaignFile, InProcess, RunOptions, TrialRunner};
+use geese_orchestrator::campaign::{Campaign, CampaignError, CampaignFile, InProcess, RunOptions, TrialRunner};
 use geese_orchestrator::launch::{NetOptions, OverZenoh};
 use geese_orchestrator::metrics::{EfficiencyVariant, PowerVariant};
 use geese_orchestrator::report::{self, EfficiencyChoice, ReportOptions};
@@ -149,7 +149,13 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         db.display()
     );
     let opts = RunOptions { jobs, retry_failed: a.retry_failed, quiet: a.quiet };
-    let out = geese_orchestrator::campaign::run_campaign(&campaign, &mut store, runner, &opts)?;
+    let out = match geese_orchestrator::campaign::run_campaign(&campaign, &mut store, runner, &opts) {
+        Err(e @ CampaignError::Interrupted { .. }) => {
+            eprintln!("{e}");
+            std::process::exit(130)
+        }
+        r => r?,
+    };
     println!(
         "{} trials planned: {} already stored, {} run now ({} done, {} failed)",
         out.planned,

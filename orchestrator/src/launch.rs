@@ -311,13 +311,9 @@ impl crate::campaign::TrialRunner for OverZenoh {
         match run_net(spec, &opts, |r, _| observe(&r.report)) {
             Ok(out) if out.completed => Ok(out.summary),
             Ok(out) => Err(format!("the world stopped after {} of {} steps", out.reports, spec.config.steps).into()),
-            // Ctrl-C ends the campaign, it is no failure of the trial: the children are
-            // gone by now and every finished trial is already committed, so a later
-            // invocation resumes where this one stopped.
-            Err(LaunchError::Interrupted) => {
-                eprintln!("interrupted: finished trials are stored; run the campaign again to resume");
-                std::process::exit(130)
-            }
+            // Ctrl-C ends the campaign; it is no failure of the trial (the children are
+            // gone by now).
+            Err(LaunchError::Interrupted) => Err(Box::new(crate::campaign::Interrupted)),
             Err(e) => Err(e.into()),
         }
     }
@@ -348,11 +344,6 @@ pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSp
         bare: opts.bare,
         expect_orchestrator: true,
     })
-}
-
-/// Running summary, exactly as the in-process driver keeps it.
-pub fn record(s: &mut TrialSummary, threshold: f64, rep: &geese_proto::StepReport) {
-    s.record(threshold, rep);
 }
 
 /// Run `spec` as separate processes; `observe` sees every step report (and may kill or
@@ -547,7 +538,7 @@ async fn run_net_async(
                     first_report.get_or_insert(now);
                     last_report = now;
                     reports += 1;
-                    record(&mut summary, c.threshold, &r.report);
+                    summary.record(c.threshold, &r.report);
                     if r.report.step == rss_at {
                         agent_rss = swarm.agent_rss_kib();
                         world_rss = swarm.world_rss_kib();

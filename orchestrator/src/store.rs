@@ -273,13 +273,6 @@ impl Store {
         Ok(())
     }
 
-    /// Record how long session `id` has run so far, so that a session that is killed
-    /// still counts towards the campaign's wall time.
-    pub fn touch_session(&self, id: i64, wall_seconds: f64) -> Result<(), StoreError> {
-        self.sql(self.conn.execute("UPDATE sessions SET wall_seconds = ?2 WHERE id = ?1", params![id, wall_seconds]))?;
-        Ok(())
-    }
-
     /// Wall time of the campaign over all its sessions (interrupted ones included) and
     /// the number of sessions. A session without a recorded wall time (killed before any
     /// trial finished, or written by an older version) counts from its start to its last
@@ -343,12 +336,15 @@ impl Store {
         tx.commit().map_err(e)
     }
 
-    /// Store a finished (or failed) trial and its step rows in one transaction.
+    /// Store a finished (or failed) trial and its step rows in one transaction, with the
+    /// wall time `session` has run so far (so an invocation that is killed later still
+    /// counts towards the campaign's wall time).
     pub fn insert(
         &mut self,
         rec: &TrialRecord,
         r: &TrialResult,
         session: i64,
+        session_wall: f64,
         transport: &str,
     ) -> Result<(), StoreError> {
         let path = self.path.clone();
@@ -422,6 +418,7 @@ impl Store {
                 .map_err(e)?;
             }
         }
+        tx.execute("UPDATE sessions SET wall_seconds = ?2 WHERE id = ?1", params![session, session_wall]).map_err(e)?;
         tx.commit().map_err(e)
     }
 

@@ -1,6 +1,8 @@
 //! Campaigns end to end: the `geese campaign` binary killed mid-way and resumed, failed
 //! trials, perturbation knobs in the trajectory, reports, figures and CSV export.
-use geese_orchestrator::campaign::{run_campaign, Campaign, InProcess, RunOptions, TrialError, TrialRunner};
+use geese_orchestrator::campaign::{
+    run_campaign, Campaign, CampaignError, InProcess, Interrupted, RunOptions, TrialError, TrialRunner,
+};
 use geese_orchestrator::config::RunSpec;
 use geese_orchestrator::report::{self, ReportOptions};
 use geese_orchestrator::store::Store;
@@ -165,6 +167,48 @@ fn failed_trials_are_recorded_and_the_campaign_goes_on() {
     let o = run_campaign(&c, &mut store, &InProcess, &retry).expect("retry");
     assert_eq!((o.skipped, o.done, o.failed), (2, 1, 3));
     assert_eq!(store.trials().expect("trials").len(), 6);
+}
+
+/// Interrupted (as by Ctrl-C) in every trial with seed 2; the others run in-process.
+struct InterruptedRunner;
+
+impl TrialRunner for InterruptedRunner {
+    fn transport(&self) -> &str {
+        "in-process"
+    }
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
+        if spec.config.seed == 2 {
+            return Err(Box::new(Interrupted));
+        }
+        InProcess.run(spec, observe)
+    }
+}
+
+#[test]
+fn an_interrupted_trial_stops_the_campaign_and_is_not_recorded() {
+    let text = r#"
+        tasks = ["foraging"]
+        seeds = 3
+        x = "obstacles"
+        [base]
+        steps = 30
+        [base.world]
+        agents = 5
+        [[grid]]
+        obstacles = [1]
+        obstacles_at = [10]
+    "#;
+    let c = Campaign::from_toml(text, "interrupted").expect("campaign");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut store = Store::create(&dir.path().join("i.sqlite")).expect("db");
+    let one_at_a_time = RunOptions { jobs: 1, ..quiet() };
+    let err = run_campaign(&c, &mut store, &InterruptedRunner, &one_at_a_time).expect_err("interrupted");
+    assert!(matches!(err, CampaignError::Interrupted { .. }), "{err}");
+    let stored = store.trials().expect("trials");
+    assert!(stored.iter().all(|t| t.seed != 2 && t.error.is_none()), "no failure recorded for the interruption");
+    // The next invocation resumes: everything not stored runs, nothing runs twice.
+    let o = run_campaign(&c, &mut store, &InProcess, &quiet()).expect("resumed");
+    assert_eq!((o.skipped, o.done, o.failed), (stored.len(), 3 - stored.len(), 0));
 }
 
 /// Records every step report of every trial `inner` runs, keyed by its perturbations.
