@@ -166,7 +166,6 @@ pub struct Learner {
     regime: Regime,
     expected: Vec<AgentId>,
     have_percept: bool,
-    workspace: ge::Workspace,
 }
 
 /// The mapping of the gene each sender offered last, shared by every learner of a
@@ -174,6 +173,10 @@ pub struct Learner {
 /// step after step until it evolves, and all its cell-mates receive it: without the
 /// cache every receiver mapped every arriving gene again, k² mappings per crowded cell
 /// per step instead of at most k. Memory is one genome per sender seen.
+///
+/// It also holds the genetic step's scratch buffers, shared by the learners for the
+/// same reason a process has one cache: one set of buffers stays warm in the CPU
+/// caches, where one per learner (tens of kilobytes each) did not.
 #[derive(Default)]
 pub struct GeneCache {
     by_sender: std::collections::HashMap<AgentId, Individual>,
@@ -181,6 +184,7 @@ pub struct GeneCache {
     /// map differently never see each other's entries.
     mapped_with: Option<(usize, ge::MapLimits)>,
     mapper: ge::Mapper,
+    workspace: ge::Workspace,
 }
 
 impl GeneCache {
@@ -261,7 +265,6 @@ impl Learner {
             regime: Regime::default(),
             expected: Vec::new(),
             have_percept: false,
-            workspace: ge::Workspace::default(),
             view,
             cfg,
             grammar,
@@ -333,7 +336,7 @@ impl Learner {
         }
         // 7–8. genetic operators and update.
         if self.pool.len() >= self.cfg.st {
-            self.evolve();
+            self.evolve(&mut cache.workspace);
             stats.genetic = GeneticTrigger::Storage;
         } else if self.cfg.stagnation_explore > 0
             && self.age > self.cfg.stagnation_age
@@ -343,7 +346,7 @@ impl Learner {
                 let ind = ge::random_individual(&self.grammar, &self.cfg.ge, &mut self.rng_ge);
                 self.pool.push(ind);
             }
-            self.evolve();
+            self.evolve(&mut cache.workspace);
             stats.genetic = GeneticTrigger::Stagnation;
         }
         stats.fitness = self.gene.fitness;
@@ -424,10 +427,9 @@ impl Learner {
     }
 
     /// Genetic step on the pool, then adopt the winner (§5.6, §6.2 step 8).
-    fn evolve(&mut self) {
-        let winner =
-            ge::genetic_step_in(&mut self.workspace, &self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge)
-                .map(|(w, _)| w);
+    fn evolve(&mut self, workspace: &mut ge::Workspace) {
+        let winner = ge::genetic_step_in(workspace, &self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge)
+            .map(|(w, _)| w);
         self.pool.clear();
         let Ok(mut winner) = winner else { return };
         winner.materialize(&self.grammar, &self.cfg.ge);

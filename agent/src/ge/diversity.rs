@@ -191,13 +191,21 @@ pub(crate) fn tokenize_run(text: &str) -> Option<Vec<Tok>> {
     Some(toks)
 }
 
-/// The name being read from an element's text.
-#[derive(Debug, Clone, PartialEq, Eq, Default)]
+/// The longest behaviour name (`CompositeSingleCarry`): a longer name is never one.
+const LONGEST_NAME: usize = 20;
+
+/// The name being read from an element's text. `Copy` (the name is kept inline, up to
+/// the longest behaviour name), so the mapper can snapshot the whole scan cheaply.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub(crate) struct PendingName {
     parts: u32,
     class: u8,
     closed: bool,
-    name: Vec<u8>,
+    /// The name so far; only read when it came in several parts.
+    buf: [u8; LONGEST_NAME],
+    len: u8,
+    /// Longer than any behaviour name.
+    overflow: bool,
 }
 
 impl PendingName {
@@ -207,18 +215,31 @@ impl PendingName {
         }
         if self.parts == 0 {
             self.class = class;
-            self.name.clear();
+            self.len = 0;
+            self.overflow = false;
         }
-        self.name.extend_from_slice(prefix);
+        self.append(prefix);
         self.parts += 1;
         self.closed = underscore;
+    }
+
+    fn append(&mut self, bytes: &[u8]) {
+        let at = self.len as usize;
+        match self.buf.get_mut(at..at + bytes.len()) {
+            Some(dst) if !self.overflow => {
+                dst.copy_from_slice(bytes);
+                self.len += bytes.len() as u8;
+            }
+            _ => self.overflow = true,
+        }
     }
 
     fn class(&self) -> u8 {
         match self.parts {
             0 => 9,
             1 => self.class,
-            _ => class_of(&self.name),
+            _ if self.overflow => 9,
+            _ => class_of(&self.buf[..self.len as usize]),
         }
     }
 }
@@ -284,8 +305,9 @@ impl RunEffect {
 }
 
 /// The [`count`] state machine fed with pre-scanned tokens, run after run, as the
-/// mapper emits them. Reusable: [`DiversityScan::reset`] keeps the name buffer.
-#[derive(Debug, Default, Clone)]
+/// mapper emits them. `Copy` and small, so a genetic step can snapshot it at every codon
+/// (`ge::tape`).
+#[derive(Debug, Default, Clone, Copy)]
 pub(crate) struct DiversityScan {
     counts: Counts,
     depth: u32,
@@ -345,13 +367,7 @@ impl DiversityScan {
                     }
                     if let Some(t) = &e.tail {
                         self.collecting = true;
-                        self.name.parts = t.parts;
-                        self.name.class = t.class;
-                        self.name.closed = t.closed;
-                        if t.parts > 0 {
-                            self.name.name.clear();
-                            self.name.name.extend_from_slice(&t.name);
-                        }
+                        self.name = *t;
                     }
                 }
                 self.depth = (self.depth as i32 + e.delta) as u32;

@@ -21,10 +21,12 @@ use std::sync::Arc;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
+use super::crossover::{Draw, PairSampler};
 use super::diversity::diversity;
 use super::grammar::Grammar;
 use super::init::uniform_tree;
 use super::mapper::{MapLimits, MapStats, Mapper};
+use super::tape::{Origin, Recorded, Tape};
 
 /// GE parameters (§5.1 defaults: the BeTr-GEESE / collect-phase values).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -282,13 +284,15 @@ pub struct StepStats {
     pub offspring: usize,
     /// Offspring invalid after mutation.
     pub invalid_offspring: usize,
-    /// Crossover pairs discarded (too long, empty, or valid but too deep).
+    /// Crossover pairs discarded because a child mapped valid but too deep (pairs with
+    /// a child too long or empty are never drawn, `ge::crossover`).
     pub discarded_pairs: usize,
     /// Whether the winner is a pool member rather than an offspring.
     pub winner_from_pool: bool,
 }
 
-/// Pair attempts per wanted offspring before giving up.
+/// Pairs drawn per wanted offspring before giving up (only children that map valid
+/// but too deep make a drawn pair fail).
 const ATTEMPTS_PER_OFFSPRING: usize = 1000;
 /// Re-mutations of one offspring that mapped valid but too deep before it is kept as is.
 const MAX_REMUTATIONS: usize = 1000;
@@ -299,6 +303,8 @@ pub(crate) struct Kid {
     start: usize,
     len: usize,
     stats: MapStats,
+    /// Its mapping before mutation, on the tape (when the grammar allows tapes).
+    before: Option<Recorded>,
 }
 
 fn too_deep(st: &MapStats, max_tree_depth: usize) -> bool {
@@ -316,6 +322,47 @@ fn used_span(ind: &Individual) -> usize {
     }
 }
 
+/// Independent trials with success probability `p`, visited by sampling the gaps
+/// between successes (geometric, by inversion) instead of drawing once per trial: the
+/// int-flip mutation tries every used codon of 24 offspring per genetic step, and with
+/// p = 0.1 this draws about 3.6 numbers per offspring instead of about 26. The
+/// distribution of the mutated positions is the same; the random stream is not.
+#[derive(Debug, Clone, Copy)]
+struct Bernoulli {
+    p: f64,
+    /// 1 / ln(1 − p).
+    inv_ln_q: f64,
+}
+
+impl Bernoulli {
+    fn new(p: f64) -> Bernoulli {
+        Bernoulli { p, inv_ln_q: 1.0 / (1.0 - p).ln() }
+    }
+
+    /// Call `hit` with each successful trial of `0..n`, in increasing order.
+    fn for_each<R: Rng + ?Sized>(&self, rng: &mut R, n: usize, mut hit: impl FnMut(&mut R, usize)) {
+        if self.p <= 0.0 {
+            return;
+        }
+        if self.p >= 1.0 {
+            (0..n).for_each(|i| hit(rng, i));
+            return;
+        }
+        let mut i = 0usize;
+        while i < n {
+            // 1 − u ∈ (0, 1], so the gap is finite and ≥ 0.
+            let u: f64 = rng.random();
+            let gap = ((1.0 - u).ln() * self.inv_ln_q).floor();
+            if gap >= (n - i) as f64 {
+                return;
+            }
+            i += gap as usize;
+            hit(rng, i);
+            i += 1;
+        }
+    }
+}
+
 /// Buffers of a genetic step, kept by a caller that runs many (a learner), so that a
 /// step allocates nothing but the winner.
 #[derive(Debug, Default)]
@@ -323,6 +370,15 @@ pub struct Workspace {
     mapper: Mapper,
     arena: Vec<u32>,
     kids: Vec<Kid>,
+    tape: Tape,
+    /// Parents' lengths and cut-point spans, and the crossover pairs they allow.
+    lens: Vec<usize>,
+    spans: Vec<usize>,
+    pairs: PairSampler,
+    /// (position, old value) of the codons one mutation changed.
+    mutated: Vec<(u32, u32)>,
+    /// The parents' recordings on the tape, made when first needed.
+    parent_maps: Vec<Option<Recorded>>,
 }
 
 /// One genetic step on `pool` (§5.6); returns the winner with the fitness it was ranked
@@ -359,6 +415,32 @@ pub fn genetic_step_in<R: Rng + ?Sized>(
     result
 }
 
+/// The recorded mapping of a child whose first `keep` codons are those of the genome
+/// `parent` recorded: resumed from the parent's snapshot at codon `keep`, or the
+/// parent's own when the child reads no codon of its own (a valid parent whose codons
+/// the child all keeps derives exactly like it).
+fn child_map(
+    tape: &mut Tape,
+    c: &super::compiled::Compiled,
+    start: u32,
+    genome: &[u32],
+    limits: MapLimits,
+    parent: &Recorded,
+    keep: usize,
+) -> Recorded {
+    let reads = parent.reads();
+    if keep < reads {
+        tape.map::<true>(c, start, genome, limits, Origin::Snapshot(parent, keep))
+    } else if parent.stats.valid {
+        *parent
+    } else if reads > 0 {
+        // An invalid parent may have stopped because *its* genome was too short.
+        tape.map::<true>(c, start, genome, limits, Origin::Snapshot(parent, reads - 1))
+    } else {
+        tape.map::<true>(c, start, genome, limits, Origin::Start)
+    }
+}
+
 fn step<R: Rng + ?Sized>(
     ws: &mut Workspace,
     grammar: &Grammar,
@@ -384,16 +466,44 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, kids } = ws;
+    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, lens, spans, pairs } = ws;
     arena.clear();
     kids.clear();
+    tape.clear();
+    parent_maps.clear();
+    parent_maps.resize(cutoff, None);
+    // Offspring are mapped by resuming recorded mappings (`ge::tape`) when the grammar
+    // is scored from its runs and genomes do not wrap; otherwise from scratch.
+    let compiled = grammar.compiled();
+    let taped = limits.max_wraps == 0 && compiled.scored_from_runs;
+    let start_rule = grammar.start();
+    let mut parent_map = |tape: &mut Tape, i: usize| -> Recorded {
+        if let Some(r) = parent_maps[i] {
+            return r;
+        }
+        // The same gene often sits at several positions of the pool.
+        let same =
+            (0..cutoff).find(|&j| parent_maps[j].is_some() && Arc::ptr_eq(&parents[j].genome, &parents[i].genome));
+        let r = match same.and_then(|j| parent_maps[j]) {
+            Some(r) => r,
+            None => tape.map::<true>(compiled, start_rule, &parents[i].genome, limits, Origin::Start),
+        };
+        parent_maps[i] = Some(r);
+        r
+    };
 
-    // 2. Variable one-point crossover until enough offspring exist.
+    // 2. Variable one-point crossover until enough offspring exist, drawn from the
+    // attempts that produce acceptable lengths (`ge::crossover`).
+    lens.clear();
+    spans.clear();
+    lens.extend(parents.iter().map(|p| p.genome.len()));
+    spans.extend(parents.iter().map(used_span));
+    pairs.plan(lens, spans, max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     while kids.len() < wanted {
         attempts += 1;
-        if attempts > max_attempts {
+        if attempts > max_attempts || !pairs.viable() {
             return Err(GeError::NoViableOffspring {
                 produced: kids.len(),
                 wanted,
@@ -401,22 +511,12 @@ fn step<R: Rng + ?Sized>(
                 max_genome_length: max_len,
             });
         }
-        // random.sample(parents, 2): two distinct positions.
-        let i = rng.random_range(0..cutoff);
-        let mut j = rng.random_range(0..cutoff - 1);
-        if j >= i {
-            j += 1;
-        }
+        let Draw { i, j, cut } = pairs.draw(rng);
         let (p0, p1) = (&parents[i], &parents[j]);
         let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
-        let pt0 = rng.random_range(1..=used_span(p0));
-        let pt1 = rng.random_range(1..=used_span(p1));
-        let cross = rng.random::<f64>() < params.crossover_prob;
-        let (len0, len1) = if cross { (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0) } else { (g0.len(), g1.len()) };
-        if len0 == 0 || len1 == 0 || len0 > max_len || len1 > max_len {
-            stats.discarded_pairs += 1;
-            continue;
-        }
+        let cross = cut.is_some();
+        let (pt0, pt1) = cut.unwrap_or((g0.len(), g1.len()));
+        let (len0, len1) = (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0);
         let start = arena.len();
         if cross {
             arena.extend_from_slice(&g0[..pt0]);
@@ -427,43 +527,71 @@ fn step<R: Rng + ?Sized>(
             arena.extend_from_slice(g0);
             arena.extend_from_slice(g1);
         }
+        let (k0, k1) = (start..start + len0, start + len0..start + len0 + len1);
+        let (b0, b1) = if taped {
+            let (r0, r1) = (parent_map(tape, i), parent_map(tape, j));
+            if cross {
+                (
+                    Some(child_map(tape, compiled, start_rule, &arena[k0.clone()], limits, &r0, pt0)),
+                    Some(child_map(tape, compiled, start_rule, &arena[k1.clone()], limits, &r1, pt1)),
+                )
+            } else {
+                // An uncrossed child is a copy of its parent.
+                (Some(r0), Some(r1))
+            }
+        } else {
+            (None, None)
+        };
         // An uncrossed child is a copy of its parent: a valid parent's mapping is known.
-        let known = |p: &Individual| {
-            (!cross && p.valid).then_some(MapStats { valid: true, used_codons: p.used_codons, depth: p.depth })
+        let known = |p: &Individual, b: &Option<Recorded>| match b {
+            Some(r) => Some(r.stats),
+            None => (!cross && p.valid).then_some(MapStats { valid: true, used_codons: p.used_codons, depth: p.depth }),
         };
-        let s0 = match known(p0) {
-            Some(s) => s,
-            None => mapper.map_stats(grammar, &arena[start..start + len0], limits),
-        };
-        let s1 = match known(p1) {
-            Some(s) => s,
-            None => mapper.map_stats(grammar, &arena[start + len0..start + len0 + len1], limits),
-        };
+        let s0 = known(p0, &b0).unwrap_or_else(|| mapper.map_stats(grammar, &arena[k0.clone()], limits));
+        let s1 = known(p1, &b1).unwrap_or_else(|| mapper.map_stats(grammar, &arena[k1.clone()], limits));
         if too_deep(&s0, params.max_tree_depth) || too_deep(&s1, params.max_tree_depth) {
             arena.truncate(start);
             stats.discarded_pairs += 1;
             continue;
         }
-        kids.push(Kid { start, len: len0, stats: s0 });
-        kids.push(Kid { start: start + len0, len: len1, stats: s1 });
+        kids.push(Kid { start, len: len0, stats: s0, before: b0 });
+        kids.push(Kid { start: start + len0, len: len1, stats: s1, before: b1 });
     }
     stats.offspring = kids.len();
 
     // 3–4. Mutation within the used codons, remapping, evaluation with D; remember the
-    // first best offspring (= first after a stable descending sort).
+    // first best offspring (= first after a stable descending sort). With a tape the
+    // child is remapped from its first codon whose new value picks another alternative
+    // than before, and keeps its mapping and D when there is none.
     let mut best: Option<(usize, f64, MapStats)> = None;
+    let gaps = Bernoulli::new(params.mutation_prob);
     for (k, kid) in kids.iter().enumerate() {
         let eff = if kid.stats.valid { kid.len.min(kid.stats.used_codons) } else { kid.len };
         let genome = &mut arena[kid.start..kid.start + kid.len];
         let (mut st, mut fitness);
         let mut tries = 0usize;
         loop {
-            for c in genome[..eff].iter_mut() {
-                if rng.random::<f64>() < params.mutation_prob {
-                    *c = rng.random_range(0..=params.codon_size);
+            let before = kid.before.filter(|_| tries == 0);
+            mutated.clear();
+            gaps.for_each(rng, eff, |rng, i| {
+                mutated.push((i as u32, genome[i]));
+                genome[i] = rng.random_range(0..=params.codon_size);
+            });
+            let first_change = before.and_then(|b| {
+                mutated
+                    .iter()
+                    .map(|&(i, old)| (i as usize, old))
+                    .find(|&(i, old)| i < b.reads() && tape.changes(&b, i, old, genome[i]))
+            });
+            let first_change = first_change.map(|(i, _)| i);
+            (st, fitness) = match (before, first_change) {
+                (Some(b), None) => (b.stats, b.d),
+                (Some(b), Some(at)) => {
+                    let m = tape.map::<false>(compiled, start_rule, genome, limits, Origin::Snapshot(&b, at));
+                    (m.stats, m.d)
                 }
-            }
-            (st, fitness) = mapper.map_scored(grammar, genome, limits);
+                (None, _) => mapper.map_scored(grammar, genome, limits),
+            };
             tries += 1;
             if !too_deep(&st, params.max_tree_depth) || tries >= MAX_REMUTATIONS || eff == 0 {
                 break;
@@ -546,6 +674,39 @@ mod tests {
 
     fn pool_of(g: &Grammar, params: &GeParams, rng: &mut ChaCha8Rng, n: usize) -> Vec<Individual> {
         (0..n).map(|_| random_individual(g, params, rng)).collect()
+    }
+
+    /// The gap sampler mutates each position independently with probability p: the
+    /// per-position frequencies and the mean count match, and p = 0 / p = 1 are exact.
+    #[test]
+    fn bernoulli_gaps_hit_each_position_with_probability_p() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (n, trials) = (30usize, 200_000usize);
+        for p in [0.1, 0.5] {
+            let b = Bernoulli::new(p);
+            let mut hits = vec![0u32; n];
+            let mut last = None;
+            for _ in 0..trials {
+                b.for_each(&mut rng, n, |_, i| {
+                    assert!(last.is_none_or(|l| i > l), "positions must increase");
+                    last = Some(i);
+                    hits[i] += 1;
+                });
+                last = None;
+            }
+            let sd = (p * (1.0 - p) / trials as f64).sqrt();
+            for (i, &h) in hits.iter().enumerate() {
+                let f = f64::from(h) / trials as f64;
+                assert!((f - p).abs() < 6.0 * sd, "p {p}: position {i} hit with frequency {f}");
+            }
+        }
+        let mut count = |p: f64| {
+            let mut k = 0;
+            Bernoulli::new(p).for_each(&mut rng, 17, |_, _| k += 1);
+            k
+        };
+        assert_eq!(count(0.0), 0);
+        assert_eq!(count(1.0), 17);
     }
 
     #[test]
