@@ -49,9 +49,23 @@ pub(crate) struct Draw {
 /// The surviving crossover attempts of one genetic step's parents.
 #[derive(Debug, Default)]
 pub(crate) struct PairSampler {
+    /// (length, cut-point span) of each parent.
+    lens: Vec<(i64, i64)>,
+    parents: usize,
+    max_len: usize,
+    crossover_prob: f64,
+    /// Every viable ordered pair, when there are at most [`TABLE_PARENTS`] parents.
     pairs: Vec<Pair>,
+    /// Their total weight (with more parents: 1 if some pair is viable, else 0).
     total: f64,
 }
+
+/// Up to this many parents, all ordered pairs are weighed in advance (ST = 7 gives 3,
+/// the pools of a typical run up to about 15).
+const TABLE_PARENTS: usize = 16;
+
+/// Pairs drawn in a row without one surviving before [`PairSampler::draw`] gives up.
+const MAX_PAIR_DRAWS: usize = 1_000_000;
 
 /// #{(a, b) ∈ [1, u0] × [1, u1] : a − b ≤ d}.
 fn at_most(u0: i64, u1: i64, d: i64) -> i64 {
@@ -73,30 +87,62 @@ fn at_most(u0: i64, u1: i64, d: i64) -> i64 {
 }
 
 impl PairSampler {
-    /// Weigh every ordered pair of distinct parent positions. `lens[k]` is parent k's
-    /// genome length, `spans[k]` the range its cut point is drawn from (`1..=spans[k]`).
+    /// Prepare for the parents with genome lengths `lens` and cut-point spans `spans`
+    /// (parent k's cut point is drawn from `1..=spans[k]`). With few parents every
+    /// ordered pair is weighed once; with many (crowded cells give pools of hundreds)
+    /// that would be quadratic, so pairs are then drawn uniformly and kept with their
+    /// survival probability — the rejection loop with the cut-point and crossover draws
+    /// folded into one test.
     pub(crate) fn plan(&mut self, lens: &[usize], spans: &[usize], max_len: usize, crossover_prob: f64) {
         self.pairs.clear();
         self.total = 0.0;
-        let max = max_len as i64;
-        for (i, (&l0, &u0)) in lens.iter().zip(spans).enumerate() {
-            for (j, (&l1, &u1)) in lens.iter().zip(spans).enumerate() {
-                if i == j {
-                    continue;
-                }
-                let (l0, l1, u0, u1) = (l0 as i64, l1 as i64, u0 as i64, u1 as i64);
-                let copies_fit = l0 >= 1 && l1 >= 1 && l0 <= max && l1 <= max;
-                let (dlo, dhi) = ((1 - l1).max(l0 - max), (max - l1).min(l0 - 1));
-                let count =
-                    if dhi < dlo || u0 < 1 || u1 < 1 { 0 } else { at_most(u0, u1, dhi) - at_most(u0, u1, dlo - 1) };
-                let crossed = if count > 0 { crossover_prob * count as f64 / (u0 * u1) as f64 } else { 0.0 };
-                let weight = crossed + if copies_fit { 1.0 - crossover_prob } else { 0.0 };
-                if weight > 0.0 {
-                    self.total += weight;
-                    self.pairs.push(Pair { i, j, weight, crossed, u0, u1, dlo, dhi, count });
+        self.parents = lens.len();
+        self.max_len = max_len;
+        self.crossover_prob = crossover_prob;
+        self.lens.clear();
+        self.lens.extend(lens.iter().zip(spans).map(|(&l, &u)| (l as i64, u as i64)));
+        if lens.len() > TABLE_PARENTS {
+            // Viable iff some pair is: a copy of two fitting parents, or a crossover
+            // of two parents with cut points that keep both children in bounds. Any
+            // two distinct parents whose copies fit, or any pair at all when some
+            // crossover does, is found by weighing pairs until one has weight > 0.
+            self.total = if self.any_viable() { 1.0 } else { 0.0 };
+            return;
+        }
+        for i in 0..lens.len() {
+            for j in 0..lens.len() {
+                if i != j {
+                    let p = self.weigh(i, j);
+                    if p.weight > 0.0 {
+                        self.total += p.weight;
+                        self.pairs.push(p);
+                    }
                 }
             }
         }
+    }
+
+    /// Whether some ordered pair of distinct parents has a surviving attempt.
+    fn any_viable(&self) -> bool {
+        let max = self.max_len as i64;
+        let fits: Vec<usize> = (0..self.parents).filter(|&k| (1..=max).contains(&self.lens[k].0)).collect();
+        if fits.len() >= 2 && self.crossover_prob < 1.0 {
+            return true;
+        }
+        // Crossover only: quadratic, but only reached when copies cannot survive.
+        (0..self.parents).any(|i| (0..self.parents).any(|j| i != j && self.weigh(i, j).crossed > 0.0))
+    }
+
+    /// The ordered pair (i, j) and its survival probabilities.
+    fn weigh(&self, i: usize, j: usize) -> Pair {
+        let max = self.max_len as i64;
+        let ((l0, u0), (l1, u1)) = (self.lens[i], self.lens[j]);
+        let copies_fit = l0 >= 1 && l1 >= 1 && l0 <= max && l1 <= max;
+        let (dlo, dhi) = ((1 - l1).max(l0 - max), (max - l1).min(l0 - 1));
+        let count = if dhi < dlo || u0 < 1 || u1 < 1 { 0 } else { at_most(u0, u1, dhi) - at_most(u0, u1, dlo - 1) };
+        let crossed = if count > 0 { self.crossover_prob * count as f64 / (u0 * u1) as f64 } else { 0.0 };
+        let weight = crossed + if copies_fit { 1.0 - self.crossover_prob } else { 0.0 };
+        Pair { i, j, weight, crossed, u0, u1, dlo, dhi, count }
     }
 
     /// Whether any attempt can survive.
@@ -104,20 +150,42 @@ impl PairSampler {
         self.total > 0.0
     }
 
-    /// Draw a surviving attempt (requires [`PairSampler::viable`]).
-    pub(crate) fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Draw {
-        let mut x = rng.random::<f64>() * self.total;
-        let mut pick = self.pairs[self.pairs.len() - 1];
-        for p in &self.pairs {
-            if x < p.weight {
-                pick = *p;
-                break;
+    /// Draw a surviving attempt (requires [`PairSampler::viable`]); `None` when, with
+    /// many parents, [`MAX_PAIR_DRAWS`] pairs in a row did not survive.
+    pub(crate) fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Option<Draw> {
+        let pick = if self.parents > TABLE_PARENTS {
+            let mut tries = 0;
+            loop {
+                tries += 1;
+                if tries > MAX_PAIR_DRAWS {
+                    return None;
+                }
+                // random.sample(parents, 2): two distinct positions.
+                let i = rng.random_range(0..self.parents);
+                let mut j = rng.random_range(0..self.parents - 1);
+                if j >= i {
+                    j += 1;
+                }
+                let p = self.weigh(i, j);
+                if rng.random::<f64>() < p.weight {
+                    break p;
+                }
             }
-            x -= p.weight;
-        }
+        } else {
+            let mut x = rng.random::<f64>() * self.total;
+            let mut pick = self.pairs[self.pairs.len() - 1];
+            for p in &self.pairs {
+                if x < p.weight {
+                    pick = *p;
+                    break;
+                }
+                x -= p.weight;
+            }
+            pick
+        };
         let p = pick;
         if rng.random::<f64>() * p.weight >= p.crossed {
-            return Draw { i: p.i, j: p.j, cut: None };
+            return Some(Draw { i: p.i, j: p.j, cut: None });
         }
         // A uniform (a, b) in the band: the k-th one in order of a, then b.
         let mut k = rng.random_range(0..p.count);
@@ -125,7 +193,7 @@ impl PairSampler {
             let (b_lo, b_hi) = ((a - p.dhi).max(1), (a - p.dlo).min(p.u1));
             let n = (b_hi - b_lo + 1).max(0);
             if k < n {
-                return Draw { i: p.i, j: p.j, cut: Some((a as usize, (b_lo + k) as usize)) };
+                return Some(Draw { i: p.i, j: p.j, cut: Some((a as usize, (b_lo + k) as usize)) });
             }
             k -= n;
         }
@@ -152,20 +220,21 @@ mod tests {
         }
     }
 
-    /// The law of the drawn attempts is the law of the attempts the rejection loop
-    /// keeps: compare frequencies of every (pair, cut points) outcome.
-    #[test]
-    fn draws_follow_the_rejection_loop() {
-        let lens = [9usize, 7, 10, 4];
-        let spans = [5usize, 7, 3, 4];
-        let (max_len, pc) = (10usize, 0.9);
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
-        let n = 400_000;
-        let mut want: HashMap<Draw, u32> = HashMap::new();
-        let mut kept = 0;
-        while kept < n {
-            let i = rng.random_range(0..4);
-            let mut j = rng.random_range(0..3);
+    /// The attempts the rejection loop keeps, counted by outcome.
+    fn rejection_loop(
+        rng: &mut ChaCha8Rng,
+        lens: &[usize],
+        spans: &[usize],
+        max_len: usize,
+        pc: f64,
+        n: usize,
+    ) -> HashMap<Draw, u32> {
+        let c = lens.len();
+        let mut kept: HashMap<Draw, u32> = HashMap::new();
+        let mut k = 0;
+        while k < n {
+            let i = rng.random_range(0..c);
+            let mut j = rng.random_range(0..c - 1);
             if j >= i {
                 j += 1;
             }
@@ -175,23 +244,48 @@ mod tests {
             if l0 == 0 || l1 == 0 || l0 > max_len || l1 > max_len {
                 continue;
             }
-            kept += 1;
-            *want.entry(Draw { i, j, cut: cross.then_some((a, b)) }).or_default() += 1;
+            k += 1;
+            *kept.entry(Draw { i, j, cut: cross.then_some((a, b)) }).or_default() += 1;
         }
-        let mut s = PairSampler::default();
-        s.plan(&lens, &spans, max_len, pc);
-        let mut got: HashMap<Draw, u32> = HashMap::new();
-        for _ in 0..n {
-            *got.entry(s.draw(&mut rng)).or_default() += 1;
+        kept
+    }
+
+    /// The law of the drawn attempts is the law of the attempts the rejection loop
+    /// keeps: compare frequencies of every (pair, cut points) outcome, with a table of
+    /// pairs (few parents) and with pairs drawn and kept by weight (many parents; there
+    /// the outcomes are compared by pair and crossed-or-not).
+    #[test]
+    fn draws_follow_the_rejection_loop() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let few = (vec![9usize, 7, 10, 4], vec![5usize, 7, 3, 4]);
+        let many: (Vec<usize>, Vec<usize>) = (0..20).map(|k| (4 + k % 7, 1 + k % 5)).unzip();
+        for (lens, spans, by_cut) in [(few.0, few.1, true), (many.0, many.1, false)] {
+            let (max_len, pc, n) = (10usize, 0.9, 400_000);
+            let coarse = |d: Draw| if by_cut { d } else { Draw { cut: d.cut.map(|_| (0, 0)), ..d } };
+            let mut want: HashMap<Draw, u32> = HashMap::new();
+            for (d, k) in rejection_loop(&mut rng, &lens, &spans, max_len, pc, n) {
+                *want.entry(coarse(d)).or_default() += k;
+            }
+            let mut s = PairSampler::default();
+            s.plan(&lens, &spans, max_len, pc);
+            let mut got: HashMap<Draw, u32> = HashMap::new();
+            for _ in 0..n {
+                let d = s.draw(&mut rng).expect("viable");
+                if let Some((a, b)) = d.cut {
+                    let (l0, l1) = (a + lens[d.j] - b, b + lens[d.i] - a);
+                    assert!((1..=max_len).contains(&l0) && (1..=max_len).contains(&l1), "{d:?}");
+                }
+                *got.entry(coarse(d)).or_default() += 1;
+            }
+            for (k, &w) in &want {
+                let g = got.get(k).copied().unwrap_or(0);
+                let p = f64::from(w) / n as f64;
+                let sd = (p * (1.0 - p) / n as f64).sqrt() * std::f64::consts::SQRT_2;
+                let f = f64::from(g) / n as f64;
+                assert!((f - p).abs() < 6.0 * sd + 1e-5, "{k:?}: rejection {p}, direct {f}");
+            }
+            assert!(got.keys().all(|k| want.contains_key(k)), "a draw the rejection loop never keeps");
         }
-        for (k, &w) in &want {
-            let g = got.get(k).copied().unwrap_or(0);
-            let p = f64::from(w) / n as f64;
-            let sd = (p * (1.0 - p) / n as f64).sqrt() * std::f64::consts::SQRT_2;
-            let f = f64::from(g) / n as f64;
-            assert!((f - p).abs() < 6.0 * sd + 1e-5, "{k:?}: rejection {p}, direct {f}");
-        }
-        assert!(got.keys().all(|k| want.contains_key(k)), "a draw the rejection loop never keeps");
     }
 
     #[test]
@@ -203,6 +297,11 @@ mod tests {
         assert!(!s.viable());
         // Equal cut points keep both lengths.
         s.plan(&[30, 30], &[30, 30], 30, 1.0);
+        assert!(s.viable());
+        // Many parents: the same answers without weighing every pair in advance.
+        s.plan(&[40; 20], &[40; 20], 30, 0.9);
+        assert!(!s.viable());
+        s.plan(&[30; 20], &[30; 20], 30, 1.0);
         assert!(s.viable());
     }
 }

@@ -513,7 +513,14 @@ fn step<R: Rng + ?Sized>(
                 max_genome_length: max_len,
             });
         }
-        let Draw { i, j, cut } = pairs.draw(rng);
+        let Some(Draw { i, j, cut }) = pairs.draw(rng) else {
+            return Err(GeError::NoViableOffspring {
+                produced: kids.len(),
+                wanted,
+                attempts,
+                max_genome_length: max_len,
+            });
+        };
         let (p0, p1) = (&parents[i], &parents[j]);
         let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
         let cross = cut.is_some();
