@@ -21,7 +21,6 @@ use std::sync::Arc;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::crossover::{Draw, PairSampler};
 use super::diversity::diversity;
 use super::grammar::Grammar;
 use super::init::uniform_tree;
@@ -284,15 +283,13 @@ pub struct StepStats {
     pub offspring: usize,
     /// Offspring invalid after mutation.
     pub invalid_offspring: usize,
-    /// Crossover pairs discarded because a child mapped valid but too deep (pairs with
-    /// a child too long or empty are never drawn, `ge::crossover`).
+    /// Crossover pairs discarded (too long, empty, or valid but too deep).
     pub discarded_pairs: usize,
     /// Whether the winner is a pool member rather than an offspring.
     pub winner_from_pool: bool,
 }
 
-/// Pairs drawn per wanted offspring before giving up (only children that map valid
-/// but too deep make a drawn pair fail).
+/// Pair attempts per wanted offspring before giving up.
 const ATTEMPTS_PER_OFFSPRING: usize = 1000;
 /// Re-mutations of one offspring that mapped valid but too deep before it is kept as is.
 const MAX_REMUTATIONS: usize = 1000;
@@ -373,10 +370,6 @@ pub struct Workspace {
     arena: Vec<u32>,
     kids: Vec<Kid>,
     tape: Tape,
-    /// Parents' lengths and cut-point spans, and the crossover pairs they allow.
-    lens: Vec<usize>,
-    spans: Vec<usize>,
-    pairs: PairSampler,
     /// (position, old value) of the codons one mutation changed.
     mutated: Vec<(u32, u32)>,
     /// The parents' recordings on the tape, made when first needed.
@@ -468,7 +461,7 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, lens, spans, pairs } = ws;
+    let Workspace { mapper, arena, kids, tape, mutated, parent_maps } = ws;
     arena.clear();
     kids.clear();
     tape.clear();
@@ -494,18 +487,12 @@ fn step<R: Rng + ?Sized>(
         r
     };
 
-    // 2. Variable one-point crossover until enough offspring exist, drawn from the
-    // attempts that produce acceptable lengths (`ge::crossover`).
-    lens.clear();
-    spans.clear();
-    lens.extend(parents.iter().map(|p| p.genome.len()));
-    spans.extend(parents.iter().map(used_span));
-    pairs.plan(lens, spans, max_len, params.crossover_prob);
+    // 2. Variable one-point crossover until enough offspring exist.
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     while kids.len() < wanted {
         attempts += 1;
-        if attempts > max_attempts || !pairs.viable() {
+        if attempts > max_attempts {
             return Err(GeError::NoViableOffspring {
                 produced: kids.len(),
                 wanted,
@@ -513,19 +500,22 @@ fn step<R: Rng + ?Sized>(
                 max_genome_length: max_len,
             });
         }
-        let Some(Draw { i, j, cut }) = pairs.draw(rng) else {
-            return Err(GeError::NoViableOffspring {
-                produced: kids.len(),
-                wanted,
-                attempts,
-                max_genome_length: max_len,
-            });
-        };
+        // random.sample(parents, 2): two distinct positions.
+        let i = rng.random_range(0..cutoff);
+        let mut j = rng.random_range(0..cutoff - 1);
+        if j >= i {
+            j += 1;
+        }
         let (p0, p1) = (&parents[i], &parents[j]);
         let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
-        let cross = cut.is_some();
-        let (pt0, pt1) = cut.unwrap_or((g0.len(), g1.len()));
-        let (len0, len1) = (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0);
+        let pt0 = rng.random_range(1..=used_span(p0));
+        let pt1 = rng.random_range(1..=used_span(p1));
+        let cross = rng.random::<f64>() < params.crossover_prob;
+        let (len0, len1) = if cross { (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0) } else { (g0.len(), g1.len()) };
+        if len0 == 0 || len1 == 0 || len0 > max_len || len1 > max_len {
+            stats.discarded_pairs += 1;
+            continue;
+        }
         let start = arena.len();
         if cross {
             arena.extend_from_slice(&g0[..pt0]);
