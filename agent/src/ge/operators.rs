@@ -370,6 +370,8 @@ pub struct Workspace {
     arena: Vec<u32>,
     kids: Vec<Kid>,
     tape: Tape,
+    /// (genome length, cut-point span) of each parent.
+    shapes: Vec<(usize, usize)>,
     /// (position, old value) of the codons one mutation changed.
     mutated: Vec<(u32, u32)>,
     /// The parents' recordings on the tape, made when first needed.
@@ -461,7 +463,7 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, kids, tape, mutated, parent_maps } = ws;
+    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, shapes } = ws;
     arena.clear();
     kids.clear();
     tape.clear();
@@ -488,6 +490,8 @@ fn step<R: Rng + ?Sized>(
     };
 
     // 2. Variable one-point crossover until enough offspring exist.
+    shapes.clear();
+    shapes.extend(parents.iter().map(|p| (p.genome.len(), used_span(p))));
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     while kids.len() < wanted {
@@ -506,16 +510,19 @@ fn step<R: Rng + ?Sized>(
         if j >= i {
             j += 1;
         }
-        let (p0, p1) = (&parents[i], &parents[j]);
-        let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
-        let pt0 = rng.random_range(1..=used_span(p0));
-        let pt1 = rng.random_range(1..=used_span(p1));
+        // Most attempts are discarded once genes are long, so they read only the
+        // parents' (length, span) pairs, not the individuals.
+        let ((l0, u0), (l1, u1)) = (shapes[i], shapes[j]);
+        let pt0 = rng.random_range(1..=u0);
+        let pt1 = rng.random_range(1..=u1);
         let cross = rng.random::<f64>() < params.crossover_prob;
-        let (len0, len1) = if cross { (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0) } else { (g0.len(), g1.len()) };
+        let (len0, len1) = if cross { (pt0 + l1 - pt1, pt1 + l0 - pt0) } else { (l0, l1) };
         if len0 == 0 || len1 == 0 || len0 > max_len || len1 > max_len {
             stats.discarded_pairs += 1;
             continue;
         }
+        let (p0, p1) = (&parents[i], &parents[j]);
+        let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
         let start = arena.len();
         if cross {
             arena.extend_from_slice(&g0[..pt0]);
