@@ -21,6 +21,7 @@ use std::sync::Arc;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
+use super::crossover::{Draw, PairSampler};
 use super::diversity::diversity;
 use super::grammar::Grammar;
 use super::init::uniform_tree;
@@ -283,13 +284,15 @@ pub struct StepStats {
     pub offspring: usize,
     /// Offspring invalid after mutation.
     pub invalid_offspring: usize,
-    /// Crossover pairs discarded (too long, empty, or valid but too deep).
+    /// Crossover pairs discarded because a child mapped valid but too deep (pairs with
+    /// a child too long or empty are never drawn, `ge::crossover`).
     pub discarded_pairs: usize,
     /// Whether the winner is a pool member rather than an offspring.
     pub winner_from_pool: bool,
 }
 
-/// Pair attempts per wanted offspring before giving up.
+/// Pairs drawn per wanted offspring before giving up (only children that map valid
+/// but too deep make a drawn pair fail).
 const ATTEMPTS_PER_OFFSPRING: usize = 1000;
 /// Re-mutations of one offspring that mapped valid but too deep before it is kept as is.
 const MAX_REMUTATIONS: usize = 1000;
@@ -370,8 +373,10 @@ pub struct Workspace {
     arena: Vec<u32>,
     kids: Vec<Kid>,
     tape: Tape,
-    /// (genome length, cut-point span) of each parent.
-    shapes: Vec<(usize, usize)>,
+    /// Parents' lengths and cut-point spans, and the crossover pairs they allow.
+    lens: Vec<usize>,
+    spans: Vec<usize>,
+    pairs: PairSampler,
     /// (position, old value) of the codons one mutation changed.
     mutated: Vec<(u32, u32)>,
     /// The parents' recordings on the tape, made when first needed.
@@ -463,7 +468,7 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, shapes } = ws;
+    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, lens, spans, pairs } = ws;
     arena.clear();
     kids.clear();
     tape.clear();
@@ -489,14 +494,18 @@ fn step<R: Rng + ?Sized>(
         r
     };
 
-    // 2. Variable one-point crossover until enough offspring exist.
-    shapes.clear();
-    shapes.extend(parents.iter().map(|p| (p.genome.len(), used_span(p))));
+    // 2. Variable one-point crossover until enough offspring exist, drawn from the
+    // attempts that produce acceptable lengths (`ge::crossover`).
+    lens.clear();
+    spans.clear();
+    lens.extend(parents.iter().map(|p| p.genome.len()));
+    spans.extend(parents.iter().map(used_span));
+    pairs.plan(lens, spans, max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     while kids.len() < wanted {
         attempts += 1;
-        if attempts > max_attempts {
+        if attempts > max_attempts || !pairs.viable() {
             return Err(GeError::NoViableOffspring {
                 produced: kids.len(),
                 wanted,
@@ -504,23 +513,17 @@ fn step<R: Rng + ?Sized>(
                 max_genome_length: max_len,
             });
         }
-        // random.sample(parents, 2): two distinct positions.
-        let i = rng.random_range(0..cutoff);
-        let mut j = rng.random_range(0..cutoff - 1);
-        if j >= i {
-            j += 1;
-        }
-        // Most attempts are discarded once genes are long, so they read only the
-        // parents' (length, span) pairs, not the individuals.
-        let ((l0, u0), (l1, u1)) = (shapes[i], shapes[j]);
-        let pt0 = rng.random_range(1..=u0);
-        let pt1 = rng.random_range(1..=u1);
-        let cross = rng.random::<f64>() < params.crossover_prob;
-        let (len0, len1) = if cross { (pt0 + l1 - pt1, pt1 + l0 - pt0) } else { (l0, l1) };
-        if len0 == 0 || len1 == 0 || len0 > max_len || len1 > max_len {
-            stats.discarded_pairs += 1;
-            continue;
-        }
+        let Some(Draw { i, j, cut }) = pairs.draw(rng) else {
+            return Err(GeError::NoViableOffspring {
+                produced: kids.len(),
+                wanted,
+                attempts,
+                max_genome_length: max_len,
+            });
+        };
+        let cross = cut.is_some();
+        let (pt0, pt1) = cut.unwrap_or((lens[i], lens[j]));
+        let (len0, len1) = (pt0 + lens[j] - pt1, pt1 + lens[i] - pt0);
         let (p0, p1) = (&parents[i], &parents[j]);
         let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
         let start = arena.len();

@@ -1,0 +1,311 @@
+//! Variable one-point crossover pairs, drawn from the accepted ones directly.
+//!
+//! Why this exists: PonyGE2 draws a pair of parent positions, a cut point in each and
+//! whether to cross, and throws the pair away when a child would be longer than
+//! `max_genome_length`. Once genes have grown to that length (they do, within a few
+//! hundred steps), a crossed pair survives only when its two cut points are equal, so
+//! a genetic step made about 80 attempts (some 400 random numbers) for its 12 pairs.
+//! The attempts are independent, so the pairs that survive are independent draws from
+//! the attempt's distribution *conditioned on surviving*; [`PairSampler`] draws from
+//! that conditional distribution directly. For each ordered pair of parent positions
+//! it counts, in closed form, the cut-point pairs that give acceptable children, and
+//! then draws (pair, crossed or not, cut points) with exactly the probabilities the
+//! rejection loop accepts them with. The random stream differs; the law of the
+//! offspring does not.
+//!
+//! Lengths: a crossed pair with cut points a, b of parents of lengths L0, L1 gives
+//! children of lengths a + L1 − b and b + L0 − a; with d = a − b both lie in
+//! [1, max] iff d ∈ [max(1 − L1, L0 − max), min(max − L1, L0 − 1)].
+
+use rand::Rng;
+
+/// One ordered pair of parent positions and what it can produce.
+#[derive(Debug, Clone, Copy)]
+struct Pair {
+    i: usize,
+    j: usize,
+    /// Probability that an attempt on this pair survives.
+    weight: f64,
+    /// Probability that an attempt on this pair is crossed and survives.
+    crossed: f64,
+    /// Cut-point spans of the two parents (a ∈ [1, u0], b ∈ [1, u1]).
+    u0: i64,
+    u1: i64,
+    /// Band of a − b that gives acceptable children, and the number of (a, b) in it.
+    dlo: i64,
+    dhi: i64,
+    count: i64,
+}
+
+/// A drawn crossover attempt that survives.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(crate) struct Draw {
+    pub(crate) i: usize,
+    pub(crate) j: usize,
+    /// Cut points when crossed; `None` for plain copies.
+    pub(crate) cut: Option<(usize, usize)>,
+}
+
+/// The surviving crossover attempts of one genetic step's parents.
+#[derive(Debug, Default)]
+pub(crate) struct PairSampler {
+    /// (length, cut-point span) of each parent.
+    lens: Vec<(i64, i64)>,
+    parents: usize,
+    max_len: usize,
+    crossover_prob: f64,
+    /// Every viable ordered pair, when there are at most [`TABLE_PARENTS`] parents.
+    pairs: Vec<Pair>,
+    /// Their total weight (with more parents: 1 if some pair is viable, else 0).
+    total: f64,
+}
+
+/// Up to this many parents, all ordered pairs are weighed in advance (ST = 7 gives 3,
+/// the pools of a typical run up to about 15).
+const TABLE_PARENTS: usize = 16;
+
+/// Pairs drawn in a row without one surviving before [`PairSampler::draw`] gives up.
+const MAX_PAIR_DRAWS: usize = 1_000_000;
+
+/// #{(a, b) ∈ [1, u0] × [1, u1] : a − b ≤ d}.
+fn at_most(u0: i64, u1: i64, d: i64) -> i64 {
+    // For each a the b ≥ a − d count clamp(u1 + 1 − t, 0, u1) with t = a − d; sum over
+    // t ∈ [1 − d, u0 − d] in the two pieces where it is not 0.
+    let (lo, hi) = (1 - d, u0 - d);
+    let mut n = 0;
+    // t ≤ 1: all u1 values of b.
+    let full = hi.min(1) - lo + 1;
+    if full > 0 {
+        n += full * u1;
+    }
+    // 2 ≤ t ≤ u1: u1 + 1 − t values, an arithmetic series.
+    let (s, e) = (lo.max(2), hi.min(u1));
+    if e >= s {
+        n += (e - s + 1) * ((u1 + 1 - s) + (u1 + 1 - e)) / 2;
+    }
+    n
+}
+
+impl PairSampler {
+    /// Prepare for the parents with genome lengths `lens` and cut-point spans `spans`
+    /// (parent k's cut point is drawn from `1..=spans[k]`). With few parents every
+    /// ordered pair is weighed once; with many (crowded cells give pools of hundreds)
+    /// that would be quadratic, so pairs are then drawn uniformly and kept with their
+    /// survival probability — the rejection loop with the cut-point and crossover draws
+    /// folded into one test.
+    pub(crate) fn plan(&mut self, lens: &[usize], spans: &[usize], max_len: usize, crossover_prob: f64) {
+        self.pairs.clear();
+        self.total = 0.0;
+        self.parents = lens.len();
+        self.max_len = max_len;
+        self.crossover_prob = crossover_prob;
+        self.lens.clear();
+        self.lens.extend(lens.iter().zip(spans).map(|(&l, &u)| (l as i64, u as i64)));
+        if lens.len() > TABLE_PARENTS {
+            // Viable iff some pair is: a copy of two fitting parents, or a crossover
+            // of two parents with cut points that keep both children in bounds. Any
+            // two distinct parents whose copies fit, or any pair at all when some
+            // crossover does, is found by weighing pairs until one has weight > 0.
+            self.total = if self.any_viable() { 1.0 } else { 0.0 };
+            return;
+        }
+        for i in 0..lens.len() {
+            for j in 0..lens.len() {
+                if i != j {
+                    let p = self.weigh(i, j);
+                    if p.weight > 0.0 {
+                        self.total += p.weight;
+                        self.pairs.push(p);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Whether some ordered pair of distinct parents has a surviving attempt.
+    fn any_viable(&self) -> bool {
+        let max = self.max_len as i64;
+        let fits: Vec<usize> = (0..self.parents).filter(|&k| (1..=max).contains(&self.lens[k].0)).collect();
+        if fits.len() >= 2 && self.crossover_prob < 1.0 {
+            return true;
+        }
+        // Crossover only: quadratic, but only reached when copies cannot survive.
+        (0..self.parents).any(|i| (0..self.parents).any(|j| i != j && self.weigh(i, j).crossed > 0.0))
+    }
+
+    /// The ordered pair (i, j) and its survival probabilities.
+    fn weigh(&self, i: usize, j: usize) -> Pair {
+        let max = self.max_len as i64;
+        let ((l0, u0), (l1, u1)) = (self.lens[i], self.lens[j]);
+        let copies_fit = l0 >= 1 && l1 >= 1 && l0 <= max && l1 <= max;
+        let (dlo, dhi) = ((1 - l1).max(l0 - max), (max - l1).min(l0 - 1));
+        let count = if dhi < dlo || u0 < 1 || u1 < 1 { 0 } else { at_most(u0, u1, dhi) - at_most(u0, u1, dlo - 1) };
+        let crossed = if count > 0 { self.crossover_prob * count as f64 / (u0 * u1) as f64 } else { 0.0 };
+        let weight = crossed + if copies_fit { 1.0 - self.crossover_prob } else { 0.0 };
+        Pair { i, j, weight, crossed, u0, u1, dlo, dhi, count }
+    }
+
+    /// Whether any attempt can survive.
+    pub(crate) fn viable(&self) -> bool {
+        self.total > 0.0
+    }
+
+    /// Draw a surviving attempt (requires [`PairSampler::viable`]); `None` when, with
+    /// many parents, [`MAX_PAIR_DRAWS`] pairs in a row did not survive.
+    pub(crate) fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Option<Draw> {
+        let pick = if self.parents > TABLE_PARENTS {
+            let mut tries = 0;
+            loop {
+                tries += 1;
+                if tries > MAX_PAIR_DRAWS {
+                    return None;
+                }
+                // random.sample(parents, 2): two distinct positions.
+                let i = rng.random_range(0..self.parents);
+                let mut j = rng.random_range(0..self.parents - 1);
+                if j >= i {
+                    j += 1;
+                }
+                let p = self.weigh(i, j);
+                if rng.random::<f64>() < p.weight {
+                    break p;
+                }
+            }
+        } else {
+            let mut x = rng.random::<f64>() * self.total;
+            let mut pick = self.pairs[self.pairs.len() - 1];
+            for p in &self.pairs {
+                if x < p.weight {
+                    pick = *p;
+                    break;
+                }
+                x -= p.weight;
+            }
+            pick
+        };
+        let p = pick;
+        if rng.random::<f64>() * p.weight >= p.crossed {
+            return Some(Draw { i: p.i, j: p.j, cut: None });
+        }
+        // A uniform (a, b) in the band: the k-th one in order of a, then b.
+        let mut k = rng.random_range(0..p.count);
+        for a in 1..=p.u0 {
+            let (b_lo, b_hi) = ((a - p.dhi).max(1), (a - p.dlo).min(p.u1));
+            let n = (b_hi - b_lo + 1).max(0);
+            if k < n {
+                return Some(Draw { i: p.i, j: p.j, cut: Some((a as usize, (b_lo + k) as usize)) });
+            }
+            k -= n;
+        }
+        unreachable!("the band holds `count` cut-point pairs")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use std::collections::HashMap;
+
+    #[test]
+    fn band_counts_match_brute_force() {
+        for u0 in 1..=9i64 {
+            for u1 in 1..=9i64 {
+                for d in -12..=12i64 {
+                    let brute = (1..=u0).flat_map(|a| (1..=u1).map(move |b| a - b)).filter(|&x| x <= d).count();
+                    assert_eq!(at_most(u0, u1, d), brute as i64, "u0 {u0} u1 {u1} d {d}");
+                }
+            }
+        }
+    }
+
+    /// The attempts the rejection loop keeps, counted by outcome.
+    fn rejection_loop(
+        rng: &mut ChaCha8Rng,
+        lens: &[usize],
+        spans: &[usize],
+        max_len: usize,
+        pc: f64,
+        n: usize,
+    ) -> HashMap<Draw, u32> {
+        let c = lens.len();
+        let mut kept: HashMap<Draw, u32> = HashMap::new();
+        let mut k = 0;
+        while k < n {
+            let i = rng.random_range(0..c);
+            let mut j = rng.random_range(0..c - 1);
+            if j >= i {
+                j += 1;
+            }
+            let (a, b) = (rng.random_range(1..=spans[i]), rng.random_range(1..=spans[j]));
+            let cross = rng.random::<f64>() < pc;
+            let (l0, l1) = if cross { (a + lens[j] - b, b + lens[i] - a) } else { (lens[i], lens[j]) };
+            if l0 == 0 || l1 == 0 || l0 > max_len || l1 > max_len {
+                continue;
+            }
+            k += 1;
+            *kept.entry(Draw { i, j, cut: cross.then_some((a, b)) }).or_default() += 1;
+        }
+        kept
+    }
+
+    /// The law of the drawn attempts is the law of the attempts the rejection loop
+    /// keeps: compare frequencies of every (pair, cut points) outcome, with a table of
+    /// pairs (few parents) and with pairs drawn and kept by weight (many parents; there
+    /// the outcomes are compared by pair and crossed-or-not).
+    #[test]
+    fn draws_follow_the_rejection_loop() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let few = (vec![9usize, 7, 10, 4], vec![5usize, 7, 3, 4]);
+        // Genes at the length limit, as in a run after a few hundred steps.
+        let grown = (vec![100usize, 98, 100, 95, 100, 87, 100], vec![20usize, 25, 18, 22, 30, 15, 21]);
+        let many: (Vec<usize>, Vec<usize>) = (0..20).map(|k| (4 + k % 7, 1 + k % 5)).unzip();
+        for (lens, spans, by_cut, max_len) in
+            [(few.0, few.1, true, 10), (grown.0, grown.1, true, 100), (many.0, many.1, false, 10)]
+        {
+            let (pc, n) = (0.9, 400_000);
+            let coarse = |d: Draw| if by_cut { d } else { Draw { cut: d.cut.map(|_| (0, 0)), ..d } };
+            let mut want: HashMap<Draw, u32> = HashMap::new();
+            for (d, k) in rejection_loop(&mut rng, &lens, &spans, max_len, pc, n) {
+                *want.entry(coarse(d)).or_default() += k;
+            }
+            let mut s = PairSampler::default();
+            s.plan(&lens, &spans, max_len, pc);
+            let mut got: HashMap<Draw, u32> = HashMap::new();
+            for _ in 0..n {
+                let d = s.draw(&mut rng).expect("viable");
+                if let Some((a, b)) = d.cut {
+                    let (l0, l1) = (a + lens[d.j] - b, b + lens[d.i] - a);
+                    assert!((1..=max_len).contains(&l0) && (1..=max_len).contains(&l1), "{d:?}");
+                }
+                *got.entry(coarse(d)).or_default() += 1;
+            }
+            for (k, &w) in &want {
+                let g = got.get(k).copied().unwrap_or(0);
+                let p = f64::from(w) / n as f64;
+                let sd = (p * (1.0 - p) / n as f64).sqrt() * std::f64::consts::SQRT_2;
+                let f = f64::from(g) / n as f64;
+                assert!((f - p).abs() < 6.0 * sd + 1e-5, "{k:?}: rejection {p}, direct {f}");
+            }
+            assert!(got.keys().all(|k| want.contains_key(k)), "a draw the rejection loop never keeps");
+        }
+    }
+
+    #[test]
+    fn nothing_viable_when_every_child_is_too_long() {
+        let mut s = PairSampler::default();
+        s.plan(&[40, 40], &[40, 40], 30, 0.9);
+        assert!(!s.viable());
+        s.plan(&[40, 40], &[40, 40], 30, 1.0);
+        assert!(!s.viable());
+        // Equal cut points keep both lengths.
+        s.plan(&[30, 30], &[30, 30], 30, 1.0);
+        assert!(s.viable());
+        // Many parents: the same answers without weighing every pair in advance.
+        s.plan(&[40; 20], &[40; 20], 30, 0.9);
+        assert!(!s.viable());
+        s.plan(&[30; 20], &[30; 20], 30, 1.0);
+        assert!(s.viable());
+    }
+}
