@@ -8,7 +8,8 @@
 //! - [`leaves`]: conditions, primitive and composite actions.
 //! - [`view`]: an agent's local world model, blackboard and static memory for one tick.
 //! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness),
-//!   and the per-process [`GeneCache`] of received genes' mappings.
+//!   and the per-process [`GeneCache`] of received genes' mappings (which also holds the
+//!   genetic step's scratch buffers).
 pub mod bt;
 pub mod ge;
 pub mod grammars;

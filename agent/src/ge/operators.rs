@@ -5,9 +5,11 @@
 //! selection, variable one-point crossover within the used codons, per-codon int-flip
 //! mutation within the used codons, evaluation with the diversity D, generational
 //! replacement with elitism — and it runs for every agent every few world steps, so it
-//! is written to allocate little: offspring genomes live in one arena, the mapper's stack
-//! and the phenotype buffers are reused, and only the winner's phenotype becomes an
-//! `Arc<str>`.
+//! is written to be cheap while keeping PonyGE2's law: crossover pairs are drawn from
+//! the attempts that survive the length check (`ge::crossover`), mutated codons by the
+//! gaps between them, offspring are mapped by resuming recorded mappings (`ge::tape`),
+//! offspring genomes live in one arena, buffers are reused, and only the winner's
+//! phenotype becomes an `Arc<str>`.
 //!
 //! The pool is discarded after the step, so replacement is computed directly: the winner
 //! is the first maximum (NaN smallest, stable) of the list "best `elite_size` pool members
