@@ -87,30 +87,30 @@ fn at_most(u0: i64, u1: i64, d: i64) -> i64 {
 }
 
 impl PairSampler {
-    /// Prepare for the parents with genome lengths `lens` and cut-point spans `spans`
-    /// (parent k's cut point is drawn from `1..=spans[k]`). With few parents every
-    /// ordered pair is weighed once; with many (crowded cells give pools of hundreds)
-    /// that would be quadratic, so pairs are then drawn uniformly and kept with their
-    /// survival probability — the rejection loop with the cut-point and crossover draws
-    /// folded into one test.
-    pub(crate) fn plan(&mut self, lens: &[usize], spans: &[usize], max_len: usize, crossover_prob: f64) {
+    /// Prepare for parents given as (genome length, cut-point span) — parent k's cut
+    /// point is drawn from `1..=span`. With few parents every ordered pair is weighed
+    /// once; with many (crowded cells give pools of hundreds) that would be quadratic,
+    /// so pairs are then drawn uniformly and kept with their survival probability — the
+    /// rejection loop with the cut-point and crossover draws folded into one test.
+    pub(crate) fn plan(
+        &mut self,
+        parents: impl IntoIterator<Item = (usize, usize)>,
+        max_len: usize,
+        crossover_prob: f64,
+    ) {
         self.pairs.clear();
         self.total = 0.0;
-        self.parents = lens.len();
         self.max_len = max_len;
         self.crossover_prob = crossover_prob;
         self.lens.clear();
-        self.lens.extend(lens.iter().zip(spans).map(|(&l, &u)| (l as i64, u as i64)));
-        if lens.len() > TABLE_PARENTS {
-            // Viable iff some pair is: a copy of two fitting parents, or a crossover
-            // of two parents with cut points that keep both children in bounds. Any
-            // two distinct parents whose copies fit, or any pair at all when some
-            // crossover does, is found by weighing pairs until one has weight > 0.
+        self.lens.extend(parents.into_iter().map(|(l, u)| (l as i64, u as i64)));
+        self.parents = self.lens.len();
+        if self.parents > TABLE_PARENTS {
             self.total = if self.any_viable() { 1.0 } else { 0.0 };
             return;
         }
-        for i in 0..lens.len() {
-            for j in 0..lens.len() {
+        for i in 0..self.parents {
+            for j in 0..self.parents {
                 if i != j {
                     let p = self.weigh(i, j);
                     if p.weight > 0.0 {
@@ -122,11 +122,12 @@ impl PairSampler {
         }
     }
 
-    /// Whether some ordered pair of distinct parents has a surviving attempt.
+    /// Whether some ordered pair of distinct parents has a surviving attempt: two
+    /// parents whose copies fit, or else a pair with an acceptable crossover.
     fn any_viable(&self) -> bool {
         let max = self.max_len as i64;
-        let fits: Vec<usize> = (0..self.parents).filter(|&k| (1..=max).contains(&self.lens[k].0)).collect();
-        if fits.len() >= 2 && self.crossover_prob < 1.0 {
+        let fitting = self.lens.iter().filter(|&&(l, _)| (1..=max).contains(&l)).count();
+        if fitting >= 2 && self.crossover_prob < 1.0 {
             return true;
         }
         // Crossover only: quadratic, but only reached when copies cannot survive.
@@ -153,7 +154,7 @@ impl PairSampler {
     /// Draw a surviving attempt (requires [`PairSampler::viable`]); `None` when, with
     /// many parents, [`MAX_PAIR_DRAWS`] pairs in a row did not survive.
     pub(crate) fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Option<Draw> {
-        let pick = if self.parents > TABLE_PARENTS {
+        let p = if self.parents > TABLE_PARENTS {
             let mut tries = 0;
             loop {
                 tries += 1;
@@ -183,7 +184,6 @@ impl PairSampler {
             }
             pick
         };
-        let p = pick;
         if rng.random::<f64>() * p.weight >= p.crossed {
             return Some(Draw { i: p.i, j: p.j, cut: None });
         }
@@ -271,7 +271,7 @@ mod tests {
                 *want.entry(coarse(d)).or_default() += k;
             }
             let mut s = PairSampler::default();
-            s.plan(&lens, &spans, max_len, pc);
+            s.plan(lens.iter().copied().zip(spans.iter().copied()), max_len, pc);
             let mut got: HashMap<Draw, u32> = HashMap::new();
             for _ in 0..n {
                 let d = s.draw(&mut rng).expect("viable");
@@ -295,17 +295,17 @@ mod tests {
     #[test]
     fn nothing_viable_when_every_child_is_too_long() {
         let mut s = PairSampler::default();
-        s.plan(&[40, 40], &[40, 40], 30, 0.9);
+        s.plan([(40, 40), (40, 40)], 30, 0.9);
         assert!(!s.viable());
-        s.plan(&[40, 40], &[40, 40], 30, 1.0);
+        s.plan([(40, 40), (40, 40)], 30, 1.0);
         assert!(!s.viable());
         // Equal cut points keep both lengths.
-        s.plan(&[30, 30], &[30, 30], 30, 1.0);
+        s.plan([(30, 30), (30, 30)], 30, 1.0);
         assert!(s.viable());
         // Many parents: the same answers without weighing every pair in advance.
-        s.plan(&[40; 20], &[40; 20], 30, 0.9);
+        s.plan([(40, 40); 20], 30, 0.9);
         assert!(!s.viable());
-        s.plan(&[30; 20], &[30; 20], 30, 1.0);
+        s.plan([(30, 30); 20], 30, 1.0);
         assert!(s.viable());
     }
 }

@@ -29,7 +29,7 @@ pub struct MapLimits {
 
 impl MapLimits {
     /// The depth limit as a bound (no limit = `usize::MAX`).
-    fn depth_cap(&self) -> usize {
+    pub(crate) fn depth_cap(&self) -> usize {
         if self.max_tree_depth == 0 {
             usize::MAX
         } else {
@@ -39,7 +39,7 @@ impl MapLimits {
 }
 
 /// What an empty genome maps to (PonyGE2 would divide by zero).
-const EMPTY_GENOME: MapStats = MapStats { valid: false, used_codons: 0, depth: 1 };
+pub(crate) const EMPTY_GENOME: MapStats = MapStats { valid: false, used_codons: 0, depth: 1 };
 
 impl Default for MapLimits {
     fn default() -> Self {

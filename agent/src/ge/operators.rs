@@ -375,9 +375,7 @@ pub struct Workspace {
     arena: Vec<u32>,
     kids: Vec<Kid>,
     tape: Tape,
-    /// Parents' lengths and cut-point spans, and the crossover pairs they allow.
-    lens: Vec<usize>,
-    spans: Vec<usize>,
+    /// The crossover pairs the parents allow.
     pairs: PairSampler,
     /// (position, old value) of the codons one mutation changed.
     mutated: Vec<(u32, u32)>,
@@ -470,7 +468,7 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, lens, spans, pairs } = ws;
+    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, pairs } = ws;
     arena.clear();
     kids.clear();
     tape.clear();
@@ -486,36 +484,22 @@ fn step<R: Rng + ?Sized>(
             return r;
         }
         // The same gene often sits at several positions of the pool.
-        let same =
-            (0..cutoff).find(|&j| parent_maps[j].is_some() && Arc::ptr_eq(&parents[j].genome, &parents[i].genome));
-        let r = match same.and_then(|j| parent_maps[j]) {
-            Some(r) => r,
-            None => tape.map::<true>(compiled, start_rule, &parents[i].genome, limits, Origin::Start),
-        };
+        let r = (0..cutoff)
+            .filter(|&j| Arc::ptr_eq(&parents[j].genome, &parents[i].genome))
+            .find_map(|j| parent_maps[j])
+            .unwrap_or_else(|| tape.map::<true>(compiled, start_rule, &parents[i].genome, limits, Origin::Start));
         parent_maps[i] = Some(r);
         r
     };
 
     // 2. Variable one-point crossover until enough offspring exist, drawn from the
     // attempts that produce acceptable lengths (`ge::crossover`).
-    lens.clear();
-    spans.clear();
-    lens.extend(parents.iter().map(|p| p.genome.len()));
-    spans.extend(parents.iter().map(used_span));
-    pairs.plan(lens, spans, max_len, params.crossover_prob);
+    pairs.plan(parents.iter().map(|p| (p.genome.len(), used_span(p))), max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     while kids.len() < wanted {
-        attempts += 1;
-        if attempts > max_attempts || !pairs.viable() {
-            return Err(GeError::NoViableOffspring {
-                produced: kids.len(),
-                wanted,
-                attempts: attempts - 1,
-                max_genome_length: max_len,
-            });
-        }
-        let Some(Draw { i, j, cut }) = pairs.draw(rng) else {
+        let drawn = if attempts < max_attempts && pairs.viable() { pairs.draw(rng) } else { None };
+        let Some(Draw { i, j, cut }) = drawn else {
             return Err(GeError::NoViableOffspring {
                 produced: kids.len(),
                 wanted,
@@ -523,11 +507,12 @@ fn step<R: Rng + ?Sized>(
                 max_genome_length: max_len,
             });
         };
-        let cross = cut.is_some();
-        let (pt0, pt1) = cut.unwrap_or((lens[i], lens[j]));
-        let (len0, len1) = (pt0 + lens[j] - pt1, pt1 + lens[i] - pt0);
+        attempts += 1;
         let (p0, p1) = (&parents[i], &parents[j]);
         let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
+        let cross = cut.is_some();
+        let (pt0, pt1) = cut.unwrap_or((g0.len(), g1.len()));
+        let (len0, len1) = (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0);
         let start = arena.len();
         if cross {
             arena.extend_from_slice(&g0[..pt0]);
@@ -592,9 +577,8 @@ fn step<R: Rng + ?Sized>(
                 mutated
                     .iter()
                     .map(|&(i, old)| (i as usize, old))
-                    .find(|&(i, old)| i < b.reads() && tape.changes(&b, i, old, genome[i]))
+                    .find_map(|(i, old)| (i < b.reads() && tape.changes(&b, i, old, genome[i])).then_some(i))
             });
-            let first_change = first_change.map(|(i, _)| i);
             (st, fitness) = match (before, first_change) {
                 (Some(b), None) => (b.stats, b.d),
                 (Some(b), Some(at)) => {

@@ -29,7 +29,7 @@
 use super::compiled::Compiled;
 use super::diversity::DiversityScan;
 use super::grammar::{fast_mod, pack_symbol, Symbol, PACKED_NT};
-use super::mapper::{MapLimits, MapStats};
+use super::mapper::{MapLimits, MapStats, EMPTY_GENOME};
 
 /// End of the linked stack.
 const NIL: u32 = u32::MAX;
@@ -159,18 +159,10 @@ impl Tape {
             }
         };
         let (mut head, mut used, mut max_depth, mut need, mut scan) = state;
-        let mut reads = used as u32;
         if n == 0 {
-            return Recorded {
-                stats: MapStats { valid: false, used_codons: 0, depth: 1 },
-                d: f64::NAN,
-                lower,
-                cut,
-                upper,
-                reads: 0,
-            };
+            return Recorded { stats: EMPTY_GENOME, d: f64::NAN, lower, cut, upper, reads: 0 };
         }
-        let depth_limit = if limits.max_tree_depth == 0 { usize::MAX } else { limits.max_tree_depth };
+        let depth_limit = limits.depth_cap();
         // A resumed mapping of a shorter genome may already have too few codons left.
         let mut valid_so_far = need <= n.saturating_sub(used);
         while valid_so_far && head != NIL {
@@ -210,7 +202,6 @@ impl Tape {
             }
             let alt = &rule.alts[fast_mod(genome[used], rule.magic, nalts) as usize];
             used += 1;
-            reads += 1;
             need = need - rule.min_codons as usize + alt.child_codons as usize;
             if need > n - used {
                 break;
@@ -236,7 +227,7 @@ impl Tape {
         let valid = valid_so_far && head == NIL;
         let stats = MapStats { valid, used_codons: used, depth: max_depth };
         let d = if valid { scan.finish() } else { f64::NAN };
-        Recorded { stats, d, lower, cut, upper, reads: if RECORD { reads } else { 0 } }
+        Recorded { stats, d, lower, cut, upper, reads: if RECORD { used as u32 } else { 0 } }
     }
 }
 
