@@ -118,20 +118,30 @@ fn killed_campaign_resumes_without_losing_or_repeating_a_trial() {
     assert_eq!(clean, resumed);
 }
 
-/// Fails (by panicking) every trial with seed 2; the others run in-process.
-struct FlakyRunner;
+/// Runs every trial in-process except those with seed 2, which end as `fail` says
+/// (a panic, or an error the runner returns).
+struct Seed2Fails {
+    transport: &'static str,
+    fail: fn() -> TrialError,
+}
 
-impl TrialRunner for FlakyRunner {
+impl TrialRunner for Seed2Fails {
     fn transport(&self) -> &str {
-        "flaky"
+        self.transport
     }
     fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
         if spec.config.seed == 2 {
-            panic!("injected failure");
+            return Err((self.fail)());
         }
         InProcess.run(spec, observe)
     }
 }
+
+/// Fails (by panicking) every trial with seed 2.
+const FLAKY: Seed2Fails = Seed2Fails { transport: "flaky", fail: || panic!("injected failure") };
+
+/// Interrupted (as by Ctrl-C) in every trial with seed 2.
+const INTERRUPTED: Seed2Fails = Seed2Fails { transport: "in-process", fail: || Box::new(Interrupted) };
 
 #[test]
 fn failed_trials_are_recorded_and_the_campaign_goes_on() {
@@ -151,7 +161,7 @@ fn failed_trials_are_recorded_and_the_campaign_goes_on() {
     let dir = tempfile::tempdir().expect("tempdir");
     let db = dir.path().join("f.sqlite");
     let mut store = Store::create(&db).expect("db");
-    let o = run_campaign(&c, &mut store, &FlakyRunner, &quiet()).expect("campaign runs");
+    let o = run_campaign(&c, &mut store, &FLAKY, &quiet()).expect("campaign runs");
     // Seeds 1 and 3 of condition 0 succeed; seed 2 panics; condition 100 never builds.
     assert_eq!((o.done, o.failed), (2, 4));
     let trials = store.trials().expect("trials");
@@ -161,27 +171,12 @@ fn failed_trials_are_recorded_and_the_campaign_goes_on() {
     assert!(err("initial_obstacles=0", 2).contains("panic: injected failure"));
     assert!(err("initial_obstacles=100", 1).contains("obstacle"), "{}", err("initial_obstacles=100", 1));
     // A second invocation skips failed trials unless asked to retry them.
-    let o = run_campaign(&c, &mut store, &FlakyRunner, &quiet()).expect("again");
+    let o = run_campaign(&c, &mut store, &FLAKY, &quiet()).expect("again");
     assert_eq!((o.skipped, o.done, o.failed), (6, 0, 0));
     let retry = RunOptions { retry_failed: true, ..quiet() };
     let o = run_campaign(&c, &mut store, &InProcess, &retry).expect("retry");
     assert_eq!((o.skipped, o.done, o.failed), (2, 1, 3));
     assert_eq!(store.trials().expect("trials").len(), 6);
-}
-
-/// Interrupted (as by Ctrl-C) in every trial with seed 2; the others run in-process.
-struct InterruptedRunner;
-
-impl TrialRunner for InterruptedRunner {
-    fn transport(&self) -> &str {
-        "in-process"
-    }
-    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
-        if spec.config.seed == 2 {
-            return Err(Box::new(Interrupted));
-        }
-        InProcess.run(spec, observe)
-    }
 }
 
 #[test]
@@ -202,7 +197,7 @@ fn an_interrupted_trial_stops_the_campaign_and_is_not_recorded() {
     let dir = tempfile::tempdir().expect("tempdir");
     let mut store = Store::create(&dir.path().join("i.sqlite")).expect("db");
     let one_at_a_time = RunOptions { jobs: 1, ..quiet() };
-    let err = run_campaign(&c, &mut store, &InterruptedRunner, &one_at_a_time).expect_err("interrupted");
+    let err = run_campaign(&c, &mut store, &INTERRUPTED, &one_at_a_time).expect_err("interrupted");
     assert!(matches!(err, CampaignError::Interrupted { .. }), "{err}");
     let stored = store.trials().expect("trials");
     assert!(stored.iter().all(|t| t.seed != 2 && t.error.is_none()), "no failure recorded for the interruption");
