@@ -48,7 +48,7 @@ fn behaviour_index(name: &[u8]) -> Option<usize> {
 }
 
 /// Name counts of one phenotype.
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Hash)]
 struct Counts {
     per_behaviour: [u32; 9],
     other: bool,
@@ -196,7 +196,7 @@ const LONGEST_NAME: usize = 20;
 
 /// The name being read from an element's text. `Copy` (the name is kept inline, up to
 /// the longest behaviour name), so the mapper can snapshot the whole scan cheaply.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Hash)]
 pub(crate) struct PendingName {
     parts: u32,
     class: u8,
@@ -307,7 +307,7 @@ impl RunEffect {
 /// The [`count`] state machine fed with pre-scanned tokens, run after run, as the
 /// mapper emits them. `Copy` and small, so a genetic step can snapshot it at every codon
 /// (`ge::tape`).
-#[derive(Debug, Default, Clone, Copy)]
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Hash)]
 pub(crate) struct DiversityScan {
     counts: Counts,
     depth: u32,
@@ -433,6 +433,45 @@ impl DiversityScan {
     /// D of everything fed since the last reset (NaN if not well-formed).
     pub(crate) fn finish(&mut self) -> f64 {
         self.finish_counts().map_or(f64::NAN, |c| score(&c))
+    }
+}
+
+/// Most totals the ceiling search tells apart: from 10 elements on the divisor is at
+/// least 18, whatever the total.
+const CEILING_TOTAL: u32 = 10;
+
+impl DiversityScan {
+    /// This state with everything the scan can no longer read cleared, each behaviour
+    /// count capped at 1 and the total at [`CEILING_TOTAL`] (`ge::ceiling`). The scan
+    /// decides nothing from its counts, so feeding the same runs to two states with the
+    /// same abstraction gives states with the same abstraction.
+    pub(crate) fn abstracted(&self) -> DiversityScan {
+        let mut a = *self;
+        for n in &mut a.counts.per_behaviour {
+            *n = (*n).min(1);
+        }
+        a.counts.total = a.counts.total.min(CEILING_TOTAL);
+        let name = &mut a.name;
+        if !a.collecting {
+            *name = PendingName::default();
+        } else if name.parts == 0 {
+            *name = PendingName { closed: name.closed, ..PendingName::default() };
+        } else {
+            name.parts = name.parts.min(2);
+            let len = name.len as usize;
+            name.buf[len..].fill(0);
+        }
+        a
+    }
+
+    /// An upper bound of D for any phenotype whose scan ends in a state with this
+    /// abstraction (`None` if not well-formed): exact while the total is below
+    /// [`CEILING_TOTAL`] and not all nine names alone occur, otherwise the largest D such
+    /// counts allow (25 with all nine names alone, 25 · present / 18 from 10 elements).
+    pub(crate) fn ceiling_of(mut self) -> Option<f64> {
+        let c = self.finish_counts()?;
+        let all_nine = !c.other && c.per_behaviour.iter().all(|&n| n > 0);
+        Some(if all_nine { 25.0 } else { score(&c) })
     }
 }
 

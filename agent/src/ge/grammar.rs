@@ -24,6 +24,7 @@ use std::collections::HashMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use super::ceiling::Ceilings;
 use super::compiled::Compiled;
 
 /// One symbol of an alternative: an index into [`Grammar::terminal`] or into the rules.
@@ -130,6 +131,8 @@ pub struct Grammar {
     max_alternatives: usize,
     /// Runs-and-non-terminals form for the mapper's hot path.
     compiled: Compiled,
+    /// The highest D of a valid individual, per depth limit (`ge::ceiling`).
+    ceilings: Ceilings,
 }
 
 /// Why a grammar text (or file) was rejected. Lines and columns are 1-based.
@@ -285,8 +288,15 @@ impl Grammar {
         }
 
         let by_name = index.into_iter().map(|(k, v)| (k, v as u32)).collect();
-        let mut g =
-            Grammar { rules, terminals, by_name, max_arity: 0, max_alternatives: 0, compiled: Compiled::default() };
+        let mut g = Grammar {
+            rules,
+            terminals,
+            by_name,
+            max_arity: 0,
+            max_alternatives: 0,
+            compiled: Compiled::default(),
+            ceilings: Ceilings::default(),
+        };
         g.precompute()?;
         g.compiled = Compiled::build(&g);
         Ok(g)
@@ -376,6 +386,11 @@ impl Grammar {
     }
     pub(crate) fn compiled(&self) -> &Compiled {
         &self.compiled
+    }
+    /// The highest diversity D a valid individual can score under the depth limit
+    /// `max_tree_depth` (0 = none), when the grammar allows finding it (`ge::ceiling`).
+    pub fn d_ceiling(&self, max_tree_depth: usize) -> Option<f64> {
+        self.ceilings.get(&self.compiled, self.start(), max_tree_depth)
     }
     /// Terminal string by id. Panics on an id not produced by this grammar.
     pub fn terminal(&self, id: u32) -> &str {

@@ -11,9 +11,11 @@
 //! - [`phenotype`]: bracket phenotype string → composite tree with the §4.3 quirk.
 //! - [`mod@diversity`]: the `bt_diversity` fitness D of §5.5.
 //! - [`operators`]: parameters, individuals and one genetic step (§5.1, §5.6).
+//! - `ceiling`: the highest D a grammar's valid individuals can score.
 //! - `crossover`: the genetic step's crossover pairs, drawn from the accepted ones.
 //! - `tape`: recorded mappings the genetic step resumes offspring from.
 
+mod ceiling;
 mod compiled;
 mod crossover;
 pub mod diversity;

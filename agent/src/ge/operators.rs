@@ -282,7 +282,9 @@ pub enum GeError {
 pub struct StepStats {
     /// Parents after truncation.
     pub parents: usize,
-    /// Offspring produced (≥ `generation_size`; pairs are never split).
+    /// Offspring made: `generation_size` or one more (pairs are never split), fewer
+    /// once the winner is settled (`ge::ceiling`; [`Workspace::every_offspring`] makes
+    /// them all).
     pub offspring: usize,
     /// Offspring invalid after mutation.
     pub invalid_offspring: usize,
@@ -373,7 +375,6 @@ impl Bernoulli {
 pub struct Workspace {
     mapper: Mapper,
     arena: Vec<u32>,
-    kids: Vec<Kid>,
     tape: Tape,
     /// The crossover pairs the parents allow.
     pairs: PairSampler,
@@ -381,6 +382,17 @@ pub struct Workspace {
     mutated: Vec<(u32, u32)>,
     /// The parents' recordings on the tape, made when first needed.
     parent_maps: Vec<Option<Recorded>>,
+    /// Make all offspring even once the winner is settled (for statistics over
+    /// offspring; the winner's law is the same).
+    every_offspring: bool,
+}
+
+impl Workspace {
+    /// Buffers for steps that make every offspring, even after the winner is settled
+    /// (`ge::ceiling`), so [`StepStats`] describes a whole generation.
+    pub fn every_offspring() -> Workspace {
+        Workspace { every_offspring: true, ..Workspace::default() }
+    }
 }
 
 /// One genetic step on `pool` (§5.6); returns the winner with the fitness it was ranked
@@ -468,9 +480,8 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, kids, tape, mutated, parent_maps, pairs } = ws;
+    let Workspace { mapper, arena, tape, mutated, parent_maps, pairs, every_offspring } = ws;
     arena.clear();
-    kids.clear();
     tape.clear();
     parent_maps.clear();
     parent_maps.resize(cutoff, None);
@@ -492,20 +503,36 @@ fn step<R: Rng + ?Sized>(
         r
     };
 
+    // The winner is settled, and making further offspring pointless, once one scores
+    // the grammar's ceiling of D (`ge::ceiling`): a later offspring would have to score
+    // strictly more. Offspring cannot win at all when the elite already has the ceiling,
+    // or when the population keeps no offspring.
+    let elites = params.elite_size.min(pool.len());
+    let ceiling = if *every_offspring { None } else { grammar.d_ceiling(params.max_tree_depth) };
+    let settled = |f: f64| ceiling.is_some_and(|c| f >= c);
+    let offspring_can_win = elites < params.population_size && !(elites > 0 && settled(pool[0].fitness));
+
     // 2. Variable one-point crossover until enough offspring exist, drawn from the
-    // attempts that produce acceptable lengths (`ge::crossover`).
+    // attempts that produce acceptable lengths (`ge::crossover`); 3–4. each pair's
+    // children mutated within their used codons, remapped and scored with D at once,
+    // remembering the first best (= first after a stable descending sort). With a tape a
+    // mutated child is remapped from its first codon whose new value picks another
+    // alternative than before, and keeps its mapping and D when there is none. Pairs and
+    // mutations are independent draws, so making them pair by pair instead of all
+    // crossovers first gives every offspring the same law (the random stream differs).
     pairs.plan(parents.iter().map(|p| (p.genome.len(), used_span(p))), max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
-    while kids.len() < wanted {
+    let mut best: Option<(Kid, f64, MapStats)> = None;
+    let gaps = Bernoulli::new(params.mutation_prob);
+    let mut made = 0usize;
+    if !pairs.viable() {
+        return Err(GeError::NoViableOffspring { produced: 0, wanted, attempts: 0, max_genome_length: max_len });
+    }
+    while offspring_can_win && made < wanted {
         let drawn = if attempts < max_attempts && pairs.viable() { pairs.draw(rng) } else { None };
         let Some(Draw { i, j, cut }) = drawn else {
-            return Err(GeError::NoViableOffspring {
-                produced: kids.len(),
-                wanted,
-                attempts,
-                max_genome_length: max_len,
-            });
+            return Err(GeError::NoViableOffspring { produced: made, wanted, attempts, max_genome_length: max_len });
         };
         attempts += 1;
         let (p0, p1) = (&parents[i], &parents[j]);
@@ -550,67 +577,60 @@ fn step<R: Rng + ?Sized>(
             stats.discarded_pairs += 1;
             continue;
         }
-        kids.push(Kid { start, len: len0, stats: s0, before: b0 });
-        kids.push(Kid { start: start + len0, len: len1, stats: s1, before: b1 });
-    }
-    stats.offspring = kids.len();
-
-    // 3–4. Mutation within the used codons, remapping, evaluation with D; remember the
-    // first best offspring (= first after a stable descending sort). With a tape the
-    // child is remapped from its first codon whose new value picks another alternative
-    // than before, and keeps its mapping and D when there is none.
-    let mut best: Option<(usize, f64, MapStats)> = None;
-    let gaps = Bernoulli::new(params.mutation_prob);
-    for (k, kid) in kids.iter().enumerate() {
-        let eff = if kid.stats.valid { kid.len.min(kid.stats.used_codons) } else { kid.len };
-        let genome = &mut arena[kid.start..kid.start + kid.len];
-        let (mut st, mut fitness);
-        let mut tries = 0usize;
-        loop {
-            let before = kid.before.filter(|_| tries == 0);
-            mutated.clear();
-            gaps.for_each(rng, eff, |rng, i| {
-                mutated.push((i as u32, genome[i]));
-                genome[i] = rng.random_range(0..=params.codon_size);
-            });
-            let first_change = before.and_then(|b| {
-                mutated
-                    .iter()
-                    .map(|&(i, old)| (i as usize, old))
-                    .find_map(|(i, old)| (i < b.reads() && tape.changes(&b, i, old, genome[i])).then_some(i))
-            });
-            (st, fitness) = match (before, first_change) {
-                (Some(b), None) => (b.stats, b.d),
-                (Some(b), Some(at)) => {
-                    let m = tape.map::<false>(compiled, start_rule, genome, limits, Origin::Snapshot(&b, at));
-                    (m.stats, m.d)
+        for kid in [
+            Kid { start, len: len0, stats: s0, before: b0 },
+            Kid { start: start + len0, len: len1, stats: s1, before: b1 },
+        ] {
+            let eff = if kid.stats.valid { kid.len.min(kid.stats.used_codons) } else { kid.len };
+            let genome = &mut arena[kid.start..kid.start + kid.len];
+            let (mut st, mut fitness);
+            let mut tries = 0usize;
+            loop {
+                let before = kid.before.filter(|_| tries == 0);
+                mutated.clear();
+                gaps.for_each(rng, eff, |rng, i| {
+                    mutated.push((i as u32, genome[i]));
+                    genome[i] = rng.random_range(0..=params.codon_size);
+                });
+                let first_change = before.and_then(|b| {
+                    mutated
+                        .iter()
+                        .map(|&(i, old)| (i as usize, old))
+                        .find_map(|(i, old)| (i < b.reads() && tape.changes(&b, i, old, genome[i])).then_some(i))
+                });
+                (st, fitness) = match (before, first_change) {
+                    (Some(b), None) => (b.stats, b.d),
+                    (Some(b), Some(at)) => {
+                        let m = tape.map::<false>(compiled, start_rule, genome, limits, Origin::Snapshot(&b, at));
+                        (m.stats, m.d)
+                    }
+                    (None, _) => mapper.map_scored(grammar, genome, limits),
+                };
+                tries += 1;
+                if !too_deep(&st, params.max_tree_depth) || tries >= MAX_REMUTATIONS || eff == 0 {
+                    break;
                 }
-                (None, _) => mapper.map_scored(grammar, genome, limits),
-            };
-            tries += 1;
-            if !too_deep(&st, params.max_tree_depth) || tries >= MAX_REMUTATIONS || eff == 0 {
-                break;
+            }
+            made += 1;
+            if !st.valid {
+                stats.invalid_offspring += 1;
+                fitness = f64::NAN;
+            }
+            if best.is_none_or(|(_, f, _)| fitness_cmp(fitness, f) == Ordering::Greater) {
+                best = Some((kid, fitness, st));
             }
         }
-        if !st.valid {
-            stats.invalid_offspring += 1;
-            fitness = f64::NAN;
-        }
-        let better = match best {
-            None => true,
-            Some((_, f, _)) => fitness_cmp(fitness, f) == Ordering::Greater,
-        };
-        if better {
-            best = Some((k, fitness, st));
+        if best.is_some_and(|(_, f, _)| settled(f)) {
+            break;
         }
     }
+    stats.offspring = made;
 
     // 5–6. Generational replacement with elites, stable sort, first is the winner.
     enum Cand {
         Pool(usize),
         Kid,
     }
-    let elites = params.elite_size.min(pool.len());
     let candidates = (0..elites).rev().map(Cand::Pool).chain(std::iter::once(Cand::Kid)).take(params.population_size);
     let mut winner: Option<(Cand, f64)> = None;
     for c in candidates {
@@ -630,8 +650,7 @@ fn step<R: Rng + ?Sized>(
             stats.winner_from_pool = true;
             std::mem::take(&mut pool[j])
         }
-        (Some((Cand::Kid, _)), Some((k, fitness, st))) => {
-            let kid = kids[k];
+        (Some((Cand::Kid, _)), Some((kid, fitness, st))) => {
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
                 // Only the winner's phenotype is ever written out.
@@ -860,7 +879,8 @@ mod tests {
         for _ in 0..50 {
             let mut pool = pool_of(&g, &p, &mut rng, 7);
             pool.iter_mut().for_each(|i| i.fitness = 0.0);
-            let (w, st) = genetic_step_with_stats(&g, &mut pool, &p, &mut rng).expect("step");
+            let (w, st) =
+                genetic_step_in(&mut Workspace::every_offspring(), &g, &mut pool, &p, &mut rng).expect("step");
             assert_eq!(st.offspring, 24);
             assert!(st.parents == 3);
             if !st.winner_from_pool {
@@ -877,13 +897,46 @@ mod tests {
         }
         assert!(won_by_kid >= 45, "{won_by_kid}");
         // Ties favour the elite: elite fitness equal to the maximum D any forge phenotype
-        // can reach here (25) can never be beaten strictly.
+        // can reach (13.8889) can never be beaten strictly, and no offspring is made.
         let mut pool = pool_of(&g, &p, &mut rng, 7);
-        pool.iter_mut().for_each(|i| i.fitness = 25.0);
+        pool.iter_mut().for_each(|i| i.fitness = 13.8889);
         let first = pool[0].genome.clone();
         let (w, st) = genetic_step_with_stats(&g, &mut pool, &p, &mut rng).expect("step");
         assert!(st.winner_from_pool);
+        assert_eq!(st.offspring, 0);
         assert_eq!(w.genome, first, "stable sort keeps the first of equal pool members");
+    }
+
+    #[test]
+    fn stopping_at_the_ceiling_keeps_the_winner() {
+        // The same pools and random stream, with and without stopping once an offspring
+        // scores the ceiling: the same winner, from fewer offspring.
+        let (mut made, mut full) = (0usize, 0usize);
+        for text in [FORGE, SF, TEST_NEW] {
+            let g = grammar(text);
+            let p = GeParams { max_genome_length: if text == TEST_NEW { 500 } else { 100 }, ..Default::default() };
+            let mut rng = ChaCha8Rng::seed_from_u64(31);
+            for round in 0..150 {
+                let mut pool = pool_of(&g, &p, &mut rng, 7 + round % 5);
+                // Elites below, at and above the ceilings (13.8889, 16.6667, 8.3333).
+                let top = [0.0, 5.0, 8.3333, 13.8889, 16.6667, 20.0][round % 6];
+                pool.iter_mut().enumerate().for_each(|(k, i)| i.fitness = top - k as f64);
+                let mut again = pool.clone();
+                let seed: u64 = rng.random();
+                let run = |ws: &mut Workspace, pool: &mut Vec<Individual>| {
+                    genetic_step_in(ws, &g, pool, &p, &mut ChaCha8Rng::seed_from_u64(seed)).expect("step")
+                };
+                let (w, st) = run(&mut Workspace::default(), &mut pool);
+                let (w_full, st_full) = run(&mut Workspace::every_offspring(), &mut again);
+                assert_eq!(w.genome, w_full.genome, "round {round}");
+                assert_eq!(w.fitness.to_bits(), w_full.fitness.to_bits());
+                assert_eq!(w.phenotype, w_full.phenotype);
+                assert_eq!(st.winner_from_pool, st_full.winner_from_pool);
+                made += st.offspring;
+                full += st_full.offspring;
+            }
+        }
+        assert!(made * 2 < full, "{made} of {full} offspring made");
     }
 
     #[test]
@@ -938,7 +991,8 @@ mod tests {
             // the highest-D GEESE-BT parents favours larger trees and raises the rate).
             let mut pool = pool_of(&g, &p, &mut rng, 7);
             pool.iter_mut().for_each(|i| i.fitness = 0.0);
-            let (_, st) = genetic_step_with_stats(&g, &mut pool, &p, &mut rng).expect("step");
+            let (_, st) =
+                genetic_step_in(&mut Workspace::every_offspring(), &g, &mut pool, &p, &mut rng).expect("step");
             invalid += st.invalid_offspring;
             total += st.offspring;
         }
