@@ -54,15 +54,24 @@ pub(crate) struct PairSampler {
     parents: usize,
     max_len: usize,
     crossover_prob: f64,
-    /// Every viable ordered pair, when there are at most [`TABLE_PARENTS`] parents.
+    /// Some attempt can survive.
+    viable: bool,
+    /// Attempts drawn since [`PairSampler::plan`].
+    drawn: usize,
+    /// Every viable ordered pair, once weighed (see [`TABLE_AFTER`]).
     pairs: Vec<Pair>,
-    /// Their total weight (with more parents: 1 if some pair is viable, else 0).
+    /// Whether `pairs` is filled, and their total weight.
+    table: bool,
     total: f64,
 }
 
-/// Up to this many parents, all ordered pairs are weighed in advance (ST = 7 gives 3,
-/// the pools of a typical run up to about 15).
+/// Up to this many parents, all ordered pairs are weighed (ST = 7 gives 3, the pools
+/// of a typical run up to about 15) ...
 const TABLE_PARENTS: usize = 16;
+/// ... once this many attempts were drawn: a genetic step usually stops after one or
+/// two pairs (`ge::ceiling`), and weighing up to 240 ordered pairs for them costs more
+/// than drawing them by rejection.
+const TABLE_AFTER: usize = 2;
 
 /// Pairs drawn in a row without one surviving before [`PairSampler::draw`] gives up.
 const MAX_PAIR_DRAWS: usize = 1_000_000;
@@ -88,10 +97,12 @@ fn at_most(u0: i64, u1: i64, d: i64) -> i64 {
 
 impl PairSampler {
     /// Prepare for parents given as (genome length, cut-point span) — parent k's cut
-    /// point is drawn from `1..=span`. With few parents every ordered pair is weighed
-    /// once; with many (crowded cells give pools of hundreds) that would be quadratic,
-    /// so pairs are then drawn uniformly and kept with their survival probability — the
-    /// rejection loop with the cut-point and crossover draws folded into one test.
+    /// point is drawn from `1..=span`. Pairs are drawn uniformly and kept with their
+    /// survival probability — the rejection loop with the cut-point and crossover draws
+    /// folded into one test — except that with few parents, from the
+    /// [`TABLE_AFTER`]-th draw on, every ordered pair is weighed once and drawn by
+    /// weight (with many, as crowded cells give pools of hundreds, that would be
+    /// quadratic). Both draw from the same law.
     pub(crate) fn plan(
         &mut self,
         parents: impl IntoIterator<Item = (usize, usize)>,
@@ -99,16 +110,20 @@ impl PairSampler {
         crossover_prob: f64,
     ) {
         self.pairs.clear();
+        self.table = false;
         self.total = 0.0;
+        self.drawn = 0;
         self.max_len = max_len;
         self.crossover_prob = crossover_prob;
         self.lens.clear();
         self.lens.extend(parents.into_iter().map(|(l, u)| (l as i64, u as i64)));
         self.parents = self.lens.len();
-        if self.parents > TABLE_PARENTS {
-            self.total = if self.any_viable() { 1.0 } else { 0.0 };
-            return;
-        }
+        self.viable = self.any_viable();
+    }
+
+    /// Weigh every ordered pair.
+    fn weigh_all(&mut self) {
+        self.table = true;
         for i in 0..self.parents {
             for j in 0..self.parents {
                 if i != j {
@@ -125,6 +140,9 @@ impl PairSampler {
     /// Whether some ordered pair of distinct parents has a surviving attempt: two
     /// parents whose copies fit, or else a pair with an acceptable crossover.
     fn any_viable(&self) -> bool {
+        if self.parents < 2 {
+            return false;
+        }
         let max = self.max_len as i64;
         let fitting = self.lens.iter().filter(|&&(l, _)| (1..=max).contains(&l)).count();
         if fitting >= 2 && self.crossover_prob < 1.0 {
@@ -148,13 +166,20 @@ impl PairSampler {
 
     /// Whether any attempt can survive.
     pub(crate) fn viable(&self) -> bool {
-        self.total > 0.0
+        self.viable
     }
 
-    /// Draw a surviving attempt (requires [`PairSampler::viable`]); `None` when, with
-    /// many parents, [`MAX_PAIR_DRAWS`] pairs in a row did not survive.
-    pub(crate) fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Option<Draw> {
-        let p = if self.parents > TABLE_PARENTS {
+    /// Draw a surviving attempt; `None` when none is viable or [`MAX_PAIR_DRAWS`]
+    /// pairs in a row did not survive.
+    pub(crate) fn draw<R: Rng + ?Sized>(&mut self, rng: &mut R) -> Option<Draw> {
+        if !self.viable {
+            return None;
+        }
+        self.drawn += 1;
+        if self.drawn > TABLE_AFTER && self.parents <= TABLE_PARENTS && !self.table {
+            self.weigh_all();
+        }
+        let p = if !self.table {
             let mut tries = 0;
             loop {
                 tries += 1;
@@ -251,9 +276,10 @@ mod tests {
     }
 
     /// The law of the drawn attempts is the law of the attempts the rejection loop
-    /// keeps: compare frequencies of every (pair, cut points) outcome, with a table of
-    /// pairs (few parents) and with pairs drawn and kept by weight (many parents; there
-    /// the outcomes are compared by pair and crossed-or-not).
+    /// keeps: compare frequencies of every (pair, cut points) outcome, half drawn from a
+    /// table of pairs (few parents) and half from pairs drawn and kept by weight (many
+    /// parents are only ever drawn so; there the outcomes are compared by pair and
+    /// crossed-or-not).
     #[test]
     fn draws_follow_the_rejection_loop() {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
@@ -270,11 +296,20 @@ mod tests {
             for (d, k) in rejection_loop(&mut rng, &lens, &spans, max_len, pc, n) {
                 *want.entry(coarse(d)).or_default() += k;
             }
-            let mut s = PairSampler::default();
-            s.plan(lens.iter().copied().zip(spans.iter().copied()), max_len, pc);
+            // Planned once (the table after the first draws, with few parents), and
+            // planned before every draw (always by rejection).
+            let mut once = PairSampler::default();
+            once.plan(lens.iter().copied().zip(spans.iter().copied()), max_len, pc);
             let mut got: HashMap<Draw, u32> = HashMap::new();
-            for _ in 0..n {
-                let d = s.draw(&mut rng).expect("viable");
+            let mut each = PairSampler::default();
+            for k in 0..n {
+                let d = if k % 2 == 0 {
+                    once.draw(&mut rng)
+                } else {
+                    each.plan(lens.iter().copied().zip(spans.iter().copied()), max_len, pc);
+                    each.draw(&mut rng)
+                };
+                let d = d.expect("viable");
                 if let Some((a, b)) = d.cut {
                     let (l0, l1) = (a + lens[d.j] - b, b + lens[d.i] - a);
                     assert!((1..=max_len).contains(&l0) && (1..=max_len).contains(&l1), "{d:?}");
