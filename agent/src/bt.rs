@@ -9,6 +9,7 @@ use crate::leaves::{Leaf, LeafError, LeafSpec};
 use crate::view::View;
 use rand::Rng;
 use std::fmt::Write;
+use std::sync::Arc;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Status {
@@ -78,77 +79,87 @@ pub enum BuildError {
 /// A behaviour tree plus its node statuses.
 #[derive(Clone, Debug)]
 pub struct Bt {
-    nodes: Vec<Node>,
+    /// The shape, fixed once built (and shared by the copies of one gene's tree).
+    nodes: Arc<[Node]>,
     status: Vec<Status>,
+}
+
+fn push(nodes: &mut Vec<Node>, kind: Kind) -> u32 {
+    nodes.push(Node { kind, children: Vec::new(), end: 0 });
+    (nodes.len() - 1) as u32
+}
+
+/// Append the nodes of `p` (depth first, a subtree's nodes contiguous); returns its root.
+fn add(nodes: &mut Vec<Node>, p: &PNode) -> Result<u32, BuildError> {
+    let i = match p {
+        PNode::Composite { kind, children } => {
+            let k = match kind {
+                CompositeKind::Sequence => Kind::Sequence,
+                CompositeKind::Selector => Kind::Selector,
+                CompositeKind::Parallel => Kind::Parallel,
+            };
+            let i = push(nodes, k);
+            for c in children {
+                let ci = add(nodes, c)?;
+                nodes[i as usize].children.push(ci);
+            }
+            i
+        }
+        PNode::Leaf { text, tag } => {
+            let spec = LeafSpec::parse(text.trim())?;
+            let leaf = Kind::Leaf(spec.leaf, Tag::from_str(tag));
+            if spec.invert {
+                let i = push(nodes, Kind::Inverter);
+                let c = push(nodes, leaf);
+                nodes[c as usize].end = c + 1;
+                nodes[i as usize].children.push(c);
+                i
+            } else {
+                push(nodes, leaf)
+            }
+        }
+    };
+    nodes[i as usize].end = nodes.len() as u32;
+    Ok(i)
 }
 
 impl Bt {
     /// Build from a parsed phenotype tree (the construction rule of §4.3 is applied by
     /// the phenotype parser). Leaf texts follow §4.2.
     pub fn from_pnode(root: &PNode) -> Result<Bt, BuildError> {
-        let mut bt = Bt { nodes: Vec::new(), status: Vec::new() };
-        bt.add(root)?;
-        bt.status = vec![Status::Invalid; bt.nodes.len()];
-        Ok(bt)
+        let mut nodes = Vec::new();
+        add(&mut nodes, root)?;
+        Ok(Bt::of(nodes))
     }
 
-    fn push(&mut self, kind: Kind) -> u32 {
-        self.nodes.push(Node { kind, children: Vec::new(), end: 0 });
-        (self.nodes.len() - 1) as u32
-    }
-
-    fn add(&mut self, p: &PNode) -> Result<u32, BuildError> {
-        let i = match p {
-            PNode::Composite { kind, children } => {
-                let k = match kind {
-                    CompositeKind::Sequence => Kind::Sequence,
-                    CompositeKind::Selector => Kind::Selector,
-                    CompositeKind::Parallel => Kind::Parallel,
-                };
-                let i = self.push(k);
-                for c in children {
-                    let ci = self.add(c)?;
-                    self.nodes[i as usize].children.push(ci);
-                }
-                i
-            }
-            PNode::Leaf { text, tag } => {
-                let spec = LeafSpec::parse(text.trim())?;
-                let leaf = Kind::Leaf(spec.leaf, Tag::from_str(tag));
-                if spec.invert {
-                    let i = self.push(Kind::Inverter);
-                    let c = self.push(leaf);
-                    self.nodes[c as usize].end = c + 1;
-                    self.nodes[i as usize].children.push(c);
-                    i
-                } else {
-                    self.push(leaf)
-                }
-            }
-        };
-        self.nodes[i as usize].end = self.nodes.len() as u32;
-        Ok(i)
+    /// A tree of these nodes, every status fresh.
+    fn of(nodes: Vec<Node>) -> Bt {
+        Bt { status: vec![Status::Invalid; nodes.len()], nodes: nodes.into() }
     }
 
     /// Compose several trees under one Parallel root (the fixed-agent "Parallel
     /// strategy", REFERENCE §6.8).
     pub fn parallel(trees: &[Bt]) -> Bt {
-        let mut bt =
-            Bt { nodes: vec![Node { kind: Kind::Parallel, children: Vec::new(), end: 0 }], status: Vec::new() };
+        let mut nodes = vec![Node { kind: Kind::Parallel, children: Vec::new(), end: 0 }];
         for t in trees {
-            let off = bt.nodes.len() as u32;
-            bt.nodes[0].children.push(off);
-            for n in &t.nodes {
-                bt.nodes.push(Node {
+            let off = nodes.len() as u32;
+            nodes[0].children.push(off);
+            for n in t.nodes.iter() {
+                nodes.push(Node {
                     kind: n.kind.clone(),
                     children: n.children.iter().map(|c| c + off).collect(),
                     end: n.end + off,
                 });
             }
         }
-        bt.nodes[0].end = bt.nodes.len() as u32;
-        bt.status = vec![Status::Invalid; bt.nodes.len()];
-        bt
+        nodes[0].end = nodes.len() as u32;
+        Bt::of(nodes)
+    }
+
+    /// The same tree with every status fresh, as [`Bt::from_pnode`] builds it; the
+    /// nodes are shared.
+    pub fn fresh(&self) -> Bt {
+        Bt { nodes: self.nodes.clone(), status: vec![Status::Invalid; self.nodes.len()] }
     }
 
     pub fn len(&self) -> usize {

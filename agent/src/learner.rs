@@ -185,11 +185,33 @@ pub struct GeneCache {
     mapped_with: Option<(usize, ge::MapLimits)>,
     mapper: ge::Mapper,
     workspace: ge::Workspace,
+    /// The behaviour trees of the phenotypes adopted lately, by phenotype: a run adopts
+    /// a few thousand distinct phenotypes over hundreds of thousands of genetic steps
+    /// (99 % of adoptions repeat one), and parsing the phenotype and building its tree
+    /// was a tenth of a learner's time. Cleared when [`TREES_KEPT`] are held.
+    trees: std::collections::HashMap<Arc<str>, Bt>,
 }
+
+/// Most behaviour trees a [`GeneCache`] keeps.
+const TREES_KEPT: usize = 8192;
 
 impl GeneCache {
     pub fn new() -> GeneCache {
         GeneCache::default()
+    }
+
+    /// The behaviour tree of a valid individual, fresh (as [`build_tree`] makes it).
+    fn tree(&mut self, ind: &Individual) -> Result<Bt, BuildError> {
+        let Some(p) = &ind.phenotype else { return Err(BuildError::Empty) };
+        if let Some(t) = self.trees.get(p) {
+            return Ok(t.fresh());
+        }
+        let t = build_tree(ind)?;
+        if self.trees.len() >= TREES_KEPT {
+            self.trees.clear();
+        }
+        self.trees.insert(p.clone(), t.fresh());
+        Ok(t)
     }
 
     /// The evaluated individual of `from`'s `genome` (a copy sharing the codons; its
@@ -336,7 +358,7 @@ impl Learner {
         }
         // 7–8. genetic operators and update.
         if self.pool.len() >= self.cfg.st {
-            self.evolve(&mut cache.workspace);
+            self.evolve(cache);
             stats.genetic = GeneticTrigger::Storage;
         } else if self.cfg.stagnation_explore > 0
             && self.age > self.cfg.stagnation_age
@@ -346,7 +368,7 @@ impl Learner {
                 let ind = ge::random_individual(&self.grammar, &self.cfg.ge, &mut self.rng_ge);
                 self.pool.push(ind);
             }
-            self.evolve(&mut cache.workspace);
+            self.evolve(cache);
             stats.genetic = GeneticTrigger::Stagnation;
         }
         stats.fitness = self.gene.fitness;
@@ -427,13 +449,14 @@ impl Learner {
     }
 
     /// Genetic step on the pool, then adopt the winner (§5.6, §6.2 step 8).
-    fn evolve(&mut self, workspace: &mut ge::Workspace) {
-        let winner = ge::genetic_step_in(workspace, &self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge)
-            .map(|(w, _)| w);
+    fn evolve(&mut self, cache: &mut GeneCache) {
+        let winner =
+            ge::genetic_step_in(&mut cache.workspace, &self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge)
+                .map(|(w, _)| w);
         self.pool.clear();
         let Ok(mut winner) = winner else { return };
         winner.materialize(&self.grammar, &self.cfg.ge);
-        let tree = match build_tree(&winner) {
+        let tree = match cache.tree(&winner) {
             Ok(t) => t,
             Err(_) => return,
         };
