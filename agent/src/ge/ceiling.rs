@@ -30,36 +30,50 @@ use super::grammar::PACKED_NT;
 /// Memoised (rule, depth, state) entries before the search gives up.
 const MAX_STATES: usize = 200_000;
 
+/// What the search finds for one depth limit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Bound {
+    /// The ceiling of D, when there is one to find.
+    pub(crate) d: Option<f64>,
+    /// Whether an individual can be valid yet deeper than the limit (its very last
+    /// symbol one level too deep); `true` when the search could not tell.
+    pub(crate) deep_last: bool,
+}
+
 /// The ceiling of D over valid individuals whose derivation from `start` respects the
-/// depth limit `max_tree_depth` (≥ 1); `None` when there is none to find (no valid
-/// individual, a grammar not scored from its runs) or the search is too large.
-pub(crate) fn d_ceiling(c: &Compiled, start: u32, max_tree_depth: usize) -> Option<f64> {
-    if !c.scored_from_runs || max_tree_depth == 0 {
-        return None;
+/// depth limit `max_tree_depth` (≥ 1); `d` is `None` when there is none to find (no
+/// valid individual, a grammar not scored from its runs) or the search is too large.
+pub(crate) fn bound(c: &Compiled, start: u32, max_tree_depth: usize) -> Bound {
+    let unknown = Bound { d: None, deep_last: true };
+    let Ok(limit) = u32::try_from(max_tree_depth) else { return unknown };
+    if !c.scored_from_runs || limit == 0 {
+        return unknown;
     }
-    let limit = u32::try_from(max_tree_depth).ok()?;
     let mut search = Search { c, limit, memo: HashMap::new(), too_big: false };
     let origin = DiversityScan::default();
     let (within, deep_last) = (search.rule(start, 1, origin, false), search.rule(start, 1, origin, true));
     if search.too_big {
-        return None;
+        return unknown;
     }
-    within.iter().chain(deep_last.iter()).filter_map(|s| s.ceiling_of()).reduce(f64::max)
+    Bound {
+        d: within.iter().chain(deep_last.iter()).filter_map(|s| s.ceiling_of()).reduce(f64::max),
+        deep_last: !deep_last.is_empty(),
+    }
 }
 
 /// The ceilings of one grammar, per depth limit, computed when first asked for (a run
 /// uses one limit; the search takes milliseconds).
 #[derive(Debug, Default)]
-pub(crate) struct Ceilings(Mutex<Vec<(usize, Option<f64>)>>);
+pub(crate) struct Ceilings(Mutex<Vec<(usize, Bound)>>);
 
 impl Ceilings {
-    pub(crate) fn get(&self, c: &Compiled, start: u32, max_tree_depth: usize) -> Option<f64> {
+    pub(crate) fn get(&self, c: &Compiled, start: u32, max_tree_depth: usize) -> Bound {
         // A panic elsewhere cannot leave the list half-written: entries are pushed whole.
         let mut known = self.0.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(&(_, v)) = known.iter().find(|(d, _)| *d == max_tree_depth) {
             return v;
         }
-        let v = d_ceiling(c, start, max_tree_depth);
+        let v = bound(c, start, max_tree_depth);
         known.push((max_tree_depth, v));
         v
     }
@@ -178,7 +192,7 @@ mod tests {
 
     fn ceiling(text: &str, depth: usize) -> Option<f64> {
         let g = Grammar::parse(text).expect("grammar");
-        d_ceiling(g.compiled(), g.start(), depth)
+        bound(g.compiled(), g.start(), depth).d
     }
 
     /// Every built-in grammar with its ceiling at the swarm's depth limit 10.
@@ -242,6 +256,11 @@ mod tests {
         assert_eq!(m.depth, 4);
         assert_eq!(d, crate::ge::python_round4(25.0 * 3.0 / 9.0));
         assert_eq!(grammar.d_ceiling(3), Some(d));
+        assert!(grammar.deep_last_possible(3));
+        // The reference grammars close their root element last, at depth 3.
+        for text in [FORGE, SF, TEST_NEW] {
+            assert!(!Grammar::parse(text).expect("grammar").deep_last_possible(10));
+        }
     }
 
     proptest! {

@@ -390,7 +390,12 @@ impl Grammar {
     /// The highest diversity D a valid individual can score under the depth limit
     /// `max_tree_depth` (0 = none), when the grammar allows finding it (`ge::ceiling`).
     pub fn d_ceiling(&self, max_tree_depth: usize) -> Option<f64> {
-        self.ceilings.get(&self.compiled, self.start(), max_tree_depth)
+        self.ceilings.get(&self.compiled, self.start(), max_tree_depth).d
+    }
+    /// Whether an individual can map valid yet deeper than `max_tree_depth` (only its
+    /// very last symbol can be); `true` when unknown.
+    pub(crate) fn deep_last_possible(&self, max_tree_depth: usize) -> bool {
+        self.ceilings.get(&self.compiled, self.start(), max_tree_depth).deep_last
     }
     /// Terminal string by id. Panics on an id not produced by this grammar.
     pub fn terminal(&self, id: u32) -> &str {

@@ -25,10 +25,10 @@ use serde::{Deserialize, Serialize};
 
 use super::crossover::{Draw, PairSampler};
 use super::diversity::diversity;
-use super::grammar::Grammar;
+use super::grammar::{fast_mod, Grammar};
 use super::init::uniform_tree;
 use super::mapper::{MapLimits, MapStats, Mapper};
-use super::tape::{Origin, Recorded, Tape};
+use super::tape::{no_change, Mapped, Mark, Origin, Tape};
 
 /// GE parameters (§5.1 defaults: the BeTr-GEESE / collect-phase values).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -303,12 +303,19 @@ const MAX_REMUTATIONS: usize = 1000;
 
 /// An offspring inside the arena.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Kid {
+struct Kid {
     start: usize,
     len: usize,
+}
+
+/// An offspring mapped before mutation.
+#[derive(Debug, Clone, Copy)]
+struct Crossed {
+    kid: Kid,
     stats: MapStats,
-    /// Its mapping before mutation, on the tape (when the grammar allows tapes).
-    before: Option<Recorded>,
+    /// On the tape (when the grammar allows tapes): its D and the state at its first
+    /// codon that its mutations change; the mutations are drawn.
+    taped: Option<(f64, Option<Mark>)>,
 }
 
 fn too_deep(st: &MapStats, max_tree_depth: usize) -> bool {
@@ -341,6 +348,20 @@ struct Bernoulli {
 impl Bernoulli {
     fn new(p: f64) -> Bernoulli {
         Bernoulli { p, inv_ln_q: 1.0 / (1.0 - p).ln() }
+    }
+
+    /// The first successful trial from `i` on (`usize::MAX` if there is none), for
+    /// visiting the successes of a range whose end is not known yet: the draws are those
+    /// of [`Bernoulli::for_each`] up to its end.
+    fn next_from<R: Rng + ?Sized>(&self, rng: &mut R, i: usize) -> usize {
+        if self.p <= 0.0 {
+            return usize::MAX;
+        }
+        if self.p >= 1.0 {
+            return i;
+        }
+        let u: f64 = rng.random();
+        i.saturating_add(((1.0 - u).ln() * self.inv_ln_q) as usize)
     }
 
     /// Call `hit` with each successful trial of `0..n`, in increasing order.
@@ -378,10 +399,8 @@ pub struct Workspace {
     tape: Tape,
     /// The crossover pairs the parents allow.
     pairs: PairSampler,
-    /// (position, old value) of the codons one mutation changed.
-    mutated: Vec<(u32, u32)>,
-    /// The parents' recordings on the tape, made when first needed.
-    parent_maps: Vec<Option<Recorded>>,
+    /// (position, new value) of the codons the mutations of a pair's children change.
+    mutations: [Vec<(u32, u32)>; 2],
     /// Make all offspring even once the winner is settled (for statistics over
     /// offspring; the winner's law is the same).
     every_offspring: bool,
@@ -429,30 +448,107 @@ pub fn genetic_step_in<R: Rng + ?Sized>(
     result
 }
 
-/// The recorded mapping of a child whose first `keep` codons are those of the genome
-/// `parent` recorded: resumed from the parent's snapshot at codon `keep`, or the
-/// parent's own when the child reads no codon of its own (a valid parent whose codons
-/// the child all keeps derives exactly like it).
-fn child_map(
-    tape: &mut Tape,
-    c: &super::compiled::Compiled,
-    start: u32,
-    genome: &[u32],
+/// What the offspring of one genetic step are made with.
+#[derive(Clone, Copy)]
+struct Env<'a> {
+    grammar: &'a Grammar,
+    compiled: &'a super::compiled::Compiled,
+    start_rule: u32,
     limits: MapLimits,
-    parent: &Recorded,
-    keep: usize,
-) -> Recorded {
-    let reads = parent.reads();
-    if keep < reads {
-        tape.map::<true>(c, start, genome, limits, Origin::Snapshot(parent, keep))
-    } else if parent.stats.valid {
-        *parent
-    } else if reads > 0 {
-        // An invalid parent may have stopped because *its* genome was too short.
-        tape.map::<true>(c, start, genome, limits, Origin::Snapshot(parent, reads - 1))
-    } else {
-        tape.map::<true>(c, start, genome, limits, Origin::Start)
+    params: &'a GeParams,
+    gaps: Bernoulli,
+    /// Whether offspring are mapped on the tape.
+    taped: bool,
+}
+
+/// Map a child before mutation. On the tape its mutations are drawn (into
+/// `mutations`) as its codons are read — the draws of [`Bernoulli::for_each`] over
+/// its used codons (its whole genome when invalid) — and the state at the first drawn
+/// codon that picks another alternative is kept, for mapping the mutated child from
+/// there. Off the tape an uncrossed valid child is a copy of its parent, whose mapping
+/// is known.
+#[allow(clippy::too_many_arguments)]
+fn map_crossed<R: Rng + ?Sized>(
+    env: &Env<'_>,
+    kid: Kid,
+    parent: &Individual,
+    cross: bool,
+    genome: &[u32],
+    tape: &mut Tape,
+    mapper: &mut Mapper,
+    mutations: &mut Vec<(u32, u32)>,
+    rng: &mut R,
+) -> Crossed {
+    if !env.taped {
+        let stats = if !cross && parent.valid {
+            MapStats { valid: true, used_codons: parent.used_codons, depth: parent.depth }
+        } else {
+            mapper.map_stats(env.grammar, genome, env.limits)
+        };
+        return Crossed { kid, stats, taped: None };
     }
+    let (gaps, codon_size) = (env.gaps, env.params.codon_size);
+    mutations.clear();
+    let mut next = gaps.next_from(rng, 0);
+    let m: Mapped =
+        tape.map(env.compiled, env.start_rule, genome, env.limits, Origin::Start, |i, codon, alts, magic| {
+            if i != next {
+                return false;
+            }
+            let new = rng.random_range(0..=codon_size);
+            mutations.push((i as u32, new));
+            next = gaps.next_from(rng, i + 1);
+            alts > 1 && fast_mod(codon, magic, alts) != fast_mod(new, magic, alts)
+        });
+    let eff = if m.stats.valid { genome.len().min(m.stats.used_codons) } else { genome.len() };
+    while next < eff {
+        mutations.push((next as u32, rng.random_range(0..=codon_size)));
+        next = gaps.next_from(rng, next + 1);
+    }
+    Crossed { kid, stats: m.stats, taped: Some((m.d, m.mark)) }
+}
+
+/// Mutate a child within its used codons (its drawn mutations when on the tape) and
+/// map and score the result; a child that maps valid but too deep is mutated again
+/// from scratch (at most [`MAX_REMUTATIONS`] times).
+fn mutate_and_score<R: Rng + ?Sized>(
+    env: &Env<'_>,
+    child: Crossed,
+    arena: &mut [u32],
+    drawn: &[(u32, u32)],
+    tape: &mut Tape,
+    mapper: &mut Mapper,
+    rng: &mut R,
+) -> (MapStats, f64) {
+    let Env { grammar, params, gaps, .. } = *env;
+    let Crossed { kid, stats: before, taped } = child;
+    let genome = &mut arena[kid.start..kid.start + kid.len];
+    let eff = if before.valid { kid.len.min(before.used_codons) } else { kid.len };
+    let (mut st, mut fitness) = match taped {
+        Some((d, mark)) => {
+            for &(i, new) in drawn {
+                genome[i as usize] = new;
+            }
+            match mark {
+                None => (before, d),
+                Some(m) => {
+                    let r = tape.map(env.compiled, env.start_rule, genome, env.limits, Origin::Mark(m), no_change);
+                    (r.stats, r.d)
+                }
+            }
+        }
+        None => {
+            gaps.for_each(rng, eff, |rng, i| genome[i] = rng.random_range(0..=params.codon_size));
+            mapper.map_scored(grammar, genome, env.limits)
+        }
+    };
+    let mut tries = 1;
+    while too_deep(&st, params.max_tree_depth) && tries < MAX_REMUTATIONS && eff > 0 {
+        gaps.for_each(rng, eff, |rng, i| genome[i] = rng.random_range(0..=params.codon_size));
+        (st, fitness) = mapper.map_scored(grammar, genome, env.limits);
+        tries += 1;
+    }
+    (st, fitness)
 }
 
 fn step<R: Rng + ?Sized>(
@@ -480,28 +576,14 @@ fn step<R: Rng + ?Sized>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, tape, mutated, parent_maps, pairs, every_offspring } = ws;
+    let Workspace { mapper, arena, tape, mutations, pairs, every_offspring } = ws;
     arena.clear();
     tape.clear();
-    parent_maps.clear();
-    parent_maps.resize(cutoff, None);
-    // Offspring are mapped by resuming recorded mappings (`ge::tape`) when the grammar
-    // is scored from its runs and genomes do not wrap; otherwise from scratch.
+    // Offspring are mapped on the tape (`ge::tape`) when the grammar is scored from its
+    // runs and genomes do not wrap; otherwise with the mapper.
     let compiled = grammar.compiled();
     let taped = limits.max_wraps == 0 && compiled.scored_from_runs;
     let start_rule = grammar.start();
-    let mut parent_map = |tape: &mut Tape, i: usize| -> Recorded {
-        if let Some(r) = parent_maps[i] {
-            return r;
-        }
-        // The same gene often sits at several positions of the pool.
-        let r = (0..cutoff)
-            .filter(|&j| Arc::ptr_eq(&parents[j].genome, &parents[i].genome))
-            .find_map(|j| parent_maps[j])
-            .unwrap_or_else(|| tape.map::<true>(compiled, start_rule, &parents[i].genome, limits, Origin::Start));
-        parent_maps[i] = Some(r);
-        r
-    };
 
     // The winner is settled, and making further offspring pointless, once one scores
     // the grammar's ceiling of D (`ge::ceiling`): a later offspring would have to score
@@ -511,26 +593,30 @@ fn step<R: Rng + ?Sized>(
     let ceiling = if *every_offspring { None } else { grammar.d_ceiling(params.max_tree_depth) };
     let settled = |f: f64| ceiling.is_some_and(|c| f >= c);
     let offspring_can_win = elites < params.population_size && !(elites > 0 && settled(pool[0].fitness));
+    // Whether a child can map valid but too deep, which discards its whole pair; if
+    // not, a pair's second child is only made when the first did not settle the winner.
+    let deep_possible = grammar.deep_last_possible(params.max_tree_depth);
+    let env = Env { grammar, compiled, start_rule, limits, params, gaps: Bernoulli::new(params.mutation_prob), taped };
 
     // 2. Variable one-point crossover until enough offspring exist, drawn from the
     // attempts that produce acceptable lengths (`ge::crossover`); 3–4. each pair's
     // children mutated within their used codons, remapped and scored with D at once,
-    // remembering the first best (= first after a stable descending sort). With a tape a
-    // mutated child is remapped from its first codon whose new value picks another
-    // alternative than before, and keeps its mapping and D when there is none. Pairs and
-    // mutations are independent draws, so making them pair by pair instead of all
+    // remembering the first best (= first after a stable descending sort). On the tape a
+    // child's mutations are drawn while it is mapped before mutation, and the mutated
+    // child is mapped from its first codon whose new value picks another alternative
+    // (it keeps its mapping and D when there is none). Pairs and mutations are
+    // independent draws, so making them pair by pair, child by child, instead of all
     // crossovers first gives every offspring the same law (the random stream differs).
     pairs.plan(parents.iter().map(|p| (p.genome.len(), used_span(p))), max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     let mut best: Option<(Kid, f64, MapStats)> = None;
-    let gaps = Bernoulli::new(params.mutation_prob);
     let mut made = 0usize;
     if !pairs.viable() {
         return Err(GeError::NoViableOffspring { produced: 0, wanted, attempts: 0, max_genome_length: max_len });
     }
-    while offspring_can_win && made < wanted {
-        let drawn = if attempts < max_attempts && pairs.viable() { pairs.draw(rng) } else { None };
+    'pairs: while offspring_can_win && made < wanted {
+        let drawn = if attempts < max_attempts { pairs.draw(rng) } else { None };
         let Some(Draw { i, j, cut }) = drawn else {
             return Err(GeError::NoViableOffspring { produced: made, wanted, attempts, max_genome_length: max_len });
         };
@@ -550,78 +636,53 @@ fn step<R: Rng + ?Sized>(
             arena.extend_from_slice(g0);
             arena.extend_from_slice(g1);
         }
-        let (k0, k1) = (start..start + len0, start + len0..start + len0 + len1);
-        let (b0, b1) = if taped {
-            let (r0, r1) = (parent_map(tape, i), parent_map(tape, j));
-            if cross {
-                (
-                    Some(child_map(tape, compiled, start_rule, &arena[k0.clone()], limits, &r0, pt0)),
-                    Some(child_map(tape, compiled, start_rule, &arena[k1.clone()], limits, &r1, pt1)),
+        let kids = [Kid { start, len: len0 }, Kid { start: start + len0, len: len1 }];
+        let parents_of = [p0, p1];
+        let crossed =
+            |k: usize, arena: &[u32], tape: &mut Tape, mapper: &mut Mapper, muts: &mut Vec<(u32, u32)>, rng: &mut R| {
+                let kid = kids[k];
+                map_crossed(
+                    &env,
+                    kid,
+                    parents_of[k],
+                    cross,
+                    &arena[kid.start..kid.start + kid.len],
+                    tape,
+                    mapper,
+                    muts,
+                    rng,
                 )
-            } else {
-                // An uncrossed child is a copy of its parent.
-                (Some(r0), Some(r1))
+            };
+        let first = crossed(0, arena, tape, mapper, &mut mutations[0], rng);
+        let second = if deep_possible {
+            let second = crossed(1, arena, tape, mapper, &mut mutations[1], rng);
+            if too_deep(&first.stats, params.max_tree_depth) || too_deep(&second.stats, params.max_tree_depth) {
+                arena.truncate(start);
+                stats.discarded_pairs += 1;
+                continue;
             }
+            Some(second)
         } else {
-            (None, None)
+            None
         };
-        // An uncrossed child is a copy of its parent: a valid parent's mapping is known.
-        let known = |p: &Individual, b: &Option<Recorded>| match b {
-            Some(r) => Some(r.stats),
-            None => (!cross && p.valid).then_some(MapStats { valid: true, used_codons: p.used_codons, depth: p.depth }),
-        };
-        let s0 = known(p0, &b0).unwrap_or_else(|| mapper.map_stats(grammar, &arena[k0.clone()], limits));
-        let s1 = known(p1, &b1).unwrap_or_else(|| mapper.map_stats(grammar, &arena[k1.clone()], limits));
-        if too_deep(&s0, params.max_tree_depth) || too_deep(&s1, params.max_tree_depth) {
-            arena.truncate(start);
-            stats.discarded_pairs += 1;
-            continue;
-        }
-        for kid in [
-            Kid { start, len: len0, stats: s0, before: b0 },
-            Kid { start: start + len0, len: len1, stats: s1, before: b1 },
-        ] {
-            let eff = if kid.stats.valid { kid.len.min(kid.stats.used_codons) } else { kid.len };
-            let genome = &mut arena[kid.start..kid.start + kid.len];
-            let (mut st, mut fitness);
-            let mut tries = 0usize;
-            loop {
-                let before = kid.before.filter(|_| tries == 0);
-                mutated.clear();
-                gaps.for_each(rng, eff, |rng, i| {
-                    mutated.push((i as u32, genome[i]));
-                    genome[i] = rng.random_range(0..=params.codon_size);
-                });
-                let first_change = before.and_then(|b| {
-                    mutated
-                        .iter()
-                        .map(|&(i, old)| (i as usize, old))
-                        .find_map(|(i, old)| (i < b.reads() && tape.changes(&b, i, old, genome[i])).then_some(i))
-                });
-                (st, fitness) = match (before, first_change) {
-                    (Some(b), None) => (b.stats, b.d),
-                    (Some(b), Some(at)) => {
-                        let m = tape.map::<false>(compiled, start_rule, genome, limits, Origin::Snapshot(&b, at));
-                        (m.stats, m.d)
-                    }
-                    (None, _) => mapper.map_scored(grammar, genome, limits),
-                };
-                tries += 1;
-                if !too_deep(&st, params.max_tree_depth) || tries >= MAX_REMUTATIONS || eff == 0 {
-                    break;
-                }
-            }
+        for k in 0..2 {
+            let child = match (k, second) {
+                (0, _) => first,
+                (_, Some(c)) => c,
+                (_, None) => crossed(1, arena, tape, mapper, &mut mutations[1], rng),
+            };
+            let (st, mut fitness) = mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
             made += 1;
             if !st.valid {
                 stats.invalid_offspring += 1;
                 fitness = f64::NAN;
             }
             if best.is_none_or(|(_, f, _)| fitness_cmp(fitness, f) == Ordering::Greater) {
-                best = Some((kid, fitness, st));
+                best = Some((child.kid, fitness, st));
             }
-        }
-        if best.is_some_and(|(_, f, _)| settled(f)) {
-            break;
+            if best.is_some_and(|(_, f, _)| settled(f)) {
+                break 'pairs;
+            }
         }
     }
     stats.offspring = made;
@@ -694,6 +755,7 @@ mod tests {
     /// per-position frequencies and the mean count match, and p = 0 / p = 1 are exact.
     #[test]
     fn bernoulli_gaps_hit_each_position_with_probability_p() {
+        // Both ways of visiting the successes.
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let (n, trials) = (30usize, 200_000usize);
         for p in [0.1, 0.5] {
@@ -708,12 +770,25 @@ mod tests {
                 });
                 last = None;
             }
+            // Visited without knowing the end in advance, as the genetic step does.
+            let mut next_hits = vec![0u32; n];
+            for _ in 0..trials {
+                let mut i = b.next_from(&mut rng, 0);
+                while i < n {
+                    next_hits[i] += 1;
+                    i = b.next_from(&mut rng, i + 1);
+                }
+            }
             let sd = (p * (1.0 - p) / trials as f64).sqrt();
-            for (i, &h) in hits.iter().enumerate() {
-                let f = f64::from(h) / trials as f64;
-                assert!((f - p).abs() < 6.0 * sd, "p {p}: position {i} hit with frequency {f}");
+            for (i, (&h, &g)) in hits.iter().zip(&next_hits).enumerate() {
+                for (how, h) in [("for_each", h), ("next_from", g)] {
+                    let f = f64::from(h) / trials as f64;
+                    assert!((f - p).abs() < 6.0 * sd, "p {p}, {how}: position {i} hit with frequency {f}");
+                }
             }
         }
+        assert_eq!(Bernoulli::new(0.0).next_from(&mut rng, 3), usize::MAX);
+        assert_eq!(Bernoulli::new(1.0).next_from(&mut rng, 3), 3);
         let mut count = |p: f64| {
             let mut k = 0;
             Bernoulli::new(p).for_each(&mut rng, 17, |_, _| k += 1);

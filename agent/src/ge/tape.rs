@@ -1,28 +1,25 @@
-//! Recorded mappings that a genetic step resumes from instead of mapping offspring from
-//! their first codon.
+//! Mappings that keep the mapper's state at the first codon a mutation changes, so that
+//! the mutated child is mapped from there instead of from its first codon.
 //!
-//! Why this exists: a genetic step maps every offspring twice (after crossover, for its
-//! used codons; after mutation, for its D), and these mappings were most of the cost of
-//! a learning agent. Yet an offspring shares most of its derivation with a mapping
-//! already done: a crossed child `g0[..p] ++ g1[q..]` derives exactly like its parent
-//! `g0` until it reads codon `p`, and a mutated child derives exactly like the child
-//! before mutation until the first mutated codon whose new value picks another
-//! alternative (`old % n != new % n`; with the swarm's parameters more than a third of
-//! the children have no such codon at all and keep their mapping and D). So the tape
-//! records, at every codon a mapping reads, the mapper's whole state — the symbol stack
-//! (a persistent linked list, so a snapshot is one index), the deepest depth so far, the
-//! codons the pending non-terminals still need, and the diversity scan — and a later
-//! mapping starts from such a snapshot.
+//! Why this exists: a genetic step maps every offspring twice — before mutation, for
+//! its used codons (they bound the mutation, §5.6), and after, for its D — and these
+//! mappings are most of the cost of a learning agent. Yet a mutated child derives
+//! exactly like the child before mutation until the first mutated codon whose new value
+//! picks another alternative (`old % n != new % n`; with the swarm's parameters more
+//! than a third of the children have no such codon at all and keep their mapping and D).
+//! So the first mapping asks a hook at every codon it reads — the genetic step draws the
+//! mutations there, in order — and keeps the mapper's whole state at the first codon
+//! the hook reports as changed: the symbol stack (a persistent linked list, so the state
+//! is one index into it), the deepest depth so far, the codons the pending
+//! non-terminals still need, and the diversity scan. The second mapping starts from it.
 //!
 //! Exactness: the loop is `Mapper`'s compiled loop (`run_runs`) on a linked stack, with
 //! the same checks in the same order, so a resumed mapping has the validity, used
 //! codons, depth and D of a mapping from the start (a property test checks this on
-//! every shipped grammar). The one check that depends on the genome's length — the
-//! pending non-terminals need more codons than are left — is monotone (what the
-//! pending symbols need falls by at most one per codon read, the codons left by exactly
-//! one), so a child shorter than the recorded parent that would have failed it before
-//! the snapshot fails it right after: it is invalid either way. As everywhere in the
-//! mapper, used codons and depth of an *invalid* mapping are diagnostic only.
+//! every shipped grammar). Codons the first mapping did not read cannot change what it
+//! read: an invalid child stays invalid at the same codon whatever its unread codons.
+//! As everywhere in the mapper, used codons and depth of an *invalid* mapping are
+//! diagnostic only.
 //!
 //! A tape lives for one genetic step: [`Tape::clear`] forgets everything.
 
@@ -46,121 +43,87 @@ struct Cell {
 /// from it replays that iteration (the same pops and checks) and then reads the codon
 /// from the new genome.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Snap {
+struct Snap {
     /// Top of the stack: the non-terminal about to read the codon.
     head: u32,
     max_depth: u32,
     need: u32,
-    /// Number of alternatives of that non-terminal (a new codon value changes the
-    /// derivation iff it differs from the old one modulo this), and its `fast_mod`
-    /// multiplier.
-    alts: u32,
-    magic: u64,
     scan: DiversityScan,
 }
 
-/// What a mapping on the tape found, and where its snapshots are.
+/// A kept state: the mapping stood at codon `at`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Mark {
+    at: u32,
+    snap: u32,
+}
+
+/// What a mapping on the tape found.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Recorded {
+pub(crate) struct Mapped {
     pub(crate) stats: MapStats,
     /// D (NaN when invalid).
     pub(crate) d: f64,
-    /// The snapshots of codons `0..reads`: `cut` of them from an earlier recording
-    /// starting at tape index `lower`, the rest at tape index `upper`.
-    lower: u32,
-    cut: u32,
-    upper: u32,
-    /// Codons the mapping read (= its snapshots).
-    reads: u32,
+    /// The state at the first codon the hook reported as changed.
+    pub(crate) mark: Option<Mark>,
 }
 
-impl Recorded {
-    /// Codons the mapping read.
-    pub(crate) fn reads(&self) -> usize {
-        self.reads as usize
-    }
-}
-
-/// Where a mapping starts: from scratch, or from the snapshot of codon `at` of a
-/// recording.
+/// Where a mapping starts: from scratch, or from a kept state (of a genome that agrees
+/// with this one on the codons read before it, modulo the alternatives read them).
 #[derive(Debug, Clone, Copy)]
-pub(crate) enum Origin<'r> {
+pub(crate) enum Origin {
     Start,
-    Snapshot(&'r Recorded, usize),
+    Mark(Mark),
 }
 
-/// Snapshots and stack cells of the mappings of one genetic step.
+/// The stack cells and kept states of the mappings of one genetic step.
 #[derive(Debug, Default)]
 pub(crate) struct Tape {
     cells: Vec<Cell>,
     snaps: Vec<Snap>,
 }
 
+/// A hook that never reports a change (for mappings that keep nothing).
+pub(crate) fn no_change(_: usize, _: u32, _: u32, _: u64) -> bool {
+    false
+}
+
 impl Tape {
-    /// Forget every recording (their [`Recorded`] handles become meaningless).
+    /// Forget every mapping (their marks become meaningless).
     pub(crate) fn clear(&mut self) {
         self.cells.clear();
         self.snaps.clear();
     }
 
-    fn snap(&self, r: &Recorded, i: usize) -> &Snap {
-        let i = i as u32;
-        debug_assert!(i < r.reads);
-        if i < r.cut {
-            &self.snaps[(r.lower + i) as usize]
-        } else {
-            &self.snaps[(r.upper + i - r.cut) as usize]
-        }
-    }
-
-    /// Whether codon `i` of the genome `r` recorded (`i < r.reads()`) picks another
-    /// alternative as `new` than as `old`.
-    pub(crate) fn changes(&self, r: &Recorded, i: usize, old: u32, new: u32) -> bool {
-        let s = self.snap(r, i);
-        s.alts > 1 && fast_mod(old, s.magic, s.alts) != fast_mod(new, s.magic, s.alts)
-    }
-
-    /// Map `genome` and score it, starting from `from` (whose genome must agree with
-    /// `genome` on the codons read before the snapshot, modulo the alternatives read
-    /// them). With `RECORD` the snapshots of the codons read from there on are kept, so
-    /// the result can be resumed from in turn; without it the snapshots are not kept
-    /// and the result must not be resumed from.
-    pub(crate) fn map<const RECORD: bool>(
+    /// Map `genome` and score it, starting from `from`. `changed(i, codon, alts,
+    /// magic)` is called for every codon `i` the mapping reads, in order, with the
+    /// number of alternatives of the non-terminal reading it and their
+    /// [`fast_mod`] multiplier; the state at the first codon it returns `true` for is
+    /// kept as the result's mark.
+    pub(crate) fn map(
         &mut self,
         c: &Compiled,
         start: u32,
         genome: &[u32],
         limits: MapLimits,
-        from: Origin<'_>,
-    ) -> Recorded {
+        from: Origin,
+        mut changed: impl FnMut(usize, u32, u32, u64) -> bool,
+    ) -> Mapped {
         let n = genome.len();
-        let upper = self.snaps.len() as u32;
-        let (state, lower, cut) = match from {
+        let mut mark = None;
+        let (mut head, mut used, mut max_depth, mut need, mut scan) = match from {
             Origin::Start => {
                 self.cells.push(Cell { entry: pack_symbol(Symbol::NonTerminal(start)) | (1 << 32), below: NIL });
                 let head = self.cells.len() as u32 - 1;
-                ((head, 0, 1, c.rules[start as usize].min_codons as usize, DiversityScan::default()), 0, 0)
+                (head, 0, 1, c.rules[start as usize].min_codons as usize, DiversityScan::default())
             }
-            Origin::Snapshot(r, at) => {
-                let s = *self.snap(r, at);
-                // The new recording's snapshots below `at` are `r`'s: `at` of them in
-                // `r`'s lower segment, or in its upper one when that is all `r` has
-                // of its own. (A recording resumed from a resumed recording past its
-                // cut would need three segments; a genetic step never makes one, and
-                // it is recorded from the start instead.)
-                let (lower, cut) = if at as u32 <= r.cut {
-                    (r.lower, at as u32)
-                } else if r.cut == 0 {
-                    (r.upper, at as u32)
-                } else {
-                    return self.map::<RECORD>(c, start, genome, limits, Origin::Start);
-                };
-                ((s.head, at, s.max_depth as usize, s.need as usize, s.scan), lower, cut)
+            Origin::Mark(m) => {
+                let s = self.snaps[m.snap as usize];
+                (s.head, m.at as usize, s.max_depth as usize, s.need as usize, s.scan)
             }
         };
-        let (mut head, mut used, mut max_depth, mut need, mut scan) = state;
         if n == 0 {
-            return Recorded { stats: EMPTY_GENOME, d: f64::NAN, lower, cut, upper, reads: 0 };
+            return Mapped { stats: EMPTY_GENOME, d: f64::NAN, mark };
         }
         let depth_limit = limits.depth_cap();
         // A resumed mapping of a shorter genome may already have too few codons left.
@@ -190,17 +153,12 @@ impl Tape {
                 break;
             }
             let nalts = rule.alts.len() as u32;
-            if RECORD {
-                self.snaps.push(Snap {
-                    head,
-                    max_depth: depth_before as u32,
-                    need: need as u32,
-                    alts: nalts,
-                    magic: rule.magic,
-                    scan,
-                });
+            let codon = genome[used];
+            if changed(used, codon, nalts, rule.magic) && mark.is_none() {
+                self.snaps.push(Snap { head, max_depth: depth_before as u32, need: need as u32, scan });
+                mark = Some(Mark { at: used as u32, snap: self.snaps.len() as u32 - 1 });
             }
-            let alt = &rule.alts[fast_mod(genome[used], rule.magic, nalts) as usize];
+            let alt = &rule.alts[fast_mod(codon, rule.magic, nalts) as usize];
             used += 1;
             need = need - rule.min_codons as usize + alt.child_codons as usize;
             if need > n - used {
@@ -227,7 +185,7 @@ impl Tape {
         let valid = valid_so_far && head == NIL;
         let stats = MapStats { valid, used_codons: used, depth: max_depth };
         let d = if valid { scan.finish() } else { f64::NAN };
-        Recorded { stats, d, lower, cut, upper, reads: if RECORD { used as u32 } else { 0 } }
+        Mapped { stats, d, mark }
     }
 }
 
@@ -252,7 +210,7 @@ mod tests {
         }
     }
 
-    fn got(r: &Recorded) -> (bool, usize, usize, u64) {
+    fn got(r: &Mapped) -> (bool, usize, usize, u64) {
         if r.stats.valid {
             (true, r.stats.used_codons, r.stats.depth, r.d.to_bits())
         } else {
@@ -284,16 +242,17 @@ mod tests {
         x
     }
 
-    /// Recording from the start, resuming a crossed child from its parent's snapshot,
-    /// and resuming a mutated child from its first changed codon give what mapping
-    /// from the start gives, on every shipped grammar, for valid and invalid genomes
-    /// and with the depth limits that matter (the limit, one below it, and none).
+    /// Mapping a child with a hook that reports its mutated codons, then resuming the
+    /// mutated child from the state kept at the first one that picks another
+    /// alternative, gives what mapping from the start gives, on every shipped grammar,
+    /// for valid and invalid genomes and with the depth limits that matter (the limit,
+    /// one below it, and none).
     #[test]
     fn resumed_mappings_equal_mappings_from_the_start() {
         let mut m = Mapper::new();
         let mut tape = Tape::default();
         let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let mut resumed = 0usize;
+        let (mut resumed, mut kept) = (0usize, 0usize);
         for (name, text) in crate::grammars::BUILTIN {
             let g = grammar(text);
             let c = g.compiled();
@@ -302,39 +261,34 @@ mod tests {
                 let limits = MapLimits { max_tree_depth, max_wraps: 0 };
                 for _ in 0..300 {
                     tape.clear();
-                    let g0 = genome(&mut rng, &g, 10);
-                    let g1 = genome(&mut rng, &g, 10);
-                    let r0 = tape.map::<true>(c, g.start(), &g0, limits, Origin::Start);
-                    assert_eq!(got(&r0), expected(&mut m, &g, &g0, limits), "{name}: {g0:?}");
-
-                    // Crossover: the child keeps `keep` codons of g0.
-                    let keep = rng.random_range(1..=g0.len());
-                    let mut child: Vec<u32> = g0[..keep].to_vec();
+                    // A crossed child, then its mutant.
+                    let (g0, g1) = (genome(&mut rng, &g, 10), genome(&mut rng, &g, 10));
+                    let mut child: Vec<u32> = g0[..rng.random_range(1..=g0.len())].to_vec();
                     child.extend_from_slice(&g1[rng.random_range(0..g1.len())..]);
-                    let rc = if keep < r0.reads() {
-                        resumed += 1;
-                        tape.map::<true>(c, g.start(), &child, limits, Origin::Snapshot(&r0, keep))
-                    } else {
-                        tape.map::<true>(c, g.start(), &child, limits, Origin::Start)
-                    };
-                    assert_eq!(got(&rc), expected(&mut m, &g, &child, limits), "{name}: {child:?} from {g0:?}");
-
-                    // Mutation: resume from the first codon that picks another alternative.
-                    let before = child.clone();
-                    let mut mutant = child;
-                    mutate(&mut rng, &mut mutant, before.len(), 0.15);
-                    let first = (0..rc.reads()).find(|&i| tape.changes(&rc, i, before[i], mutant[i]));
+                    let mut mutant = child.clone();
+                    mutate(&mut rng, &mut mutant, child.len(), 0.15);
+                    let mut reads = 0;
+                    let r = tape.map(c, g.start(), &child, limits, Origin::Start, |i, codon, alts, magic| {
+                        assert_eq!((i, codon), (reads, child[i]), "codons are reported in order");
+                        reads += 1;
+                        alts > 1 && fast_mod(codon, magic, alts) != fast_mod(mutant[i], magic, alts)
+                    });
+                    assert_eq!(got(&r), expected(&mut m, &g, &child, limits), "{name}: {child:?}");
                     let want = expected(&mut m, &g, &mutant, limits);
-                    match first {
-                        None => assert_eq!(got(&rc), want, "{name}: unchanged derivation {mutant:?}"),
-                        Some(at) => {
-                            let r = tape.map::<false>(c, g.start(), &mutant, limits, Origin::Snapshot(&rc, at));
-                            assert_eq!(got(&r), want, "{name}: {mutant:?} from {before:?} at {at}");
+                    match r.mark {
+                        None => {
+                            kept += 1;
+                            assert_eq!(got(&r), want, "{name}: unchanged derivation {mutant:?}")
+                        }
+                        Some(mark) => {
+                            resumed += 1;
+                            let again = tape.map(c, g.start(), &mutant, limits, Origin::Mark(mark), no_change);
+                            assert_eq!(got(&again), want, "{name}: {mutant:?} from {child:?} at {mark:?}");
                         }
                     }
                 }
             }
         }
-        assert!(resumed > 3000, "too few resumed mappings: {resumed}");
+        assert!(resumed > 3000 && kept > 1000, "too few of a kind: {resumed} resumed, {kept} kept");
     }
 }
