@@ -309,8 +309,8 @@ impl World {
                 GeneticTrigger::None => {}
             }
             rep.genes_lost += s.genes_lost;
-            digest.write_u32(id);
-            digest.write_u64(s.gene_digest);
+            digest.write_word(u64::from(id));
+            digest.write_word(s.gene_digest);
         }
         if !lt.is_empty() {
             let n = lt.len() as f64;
@@ -319,13 +319,13 @@ impl World {
             rep.lt_mean = round2(mean);
             rep.lt_std = round2(var.sqrt());
         }
+        // Word by word: byte-wise FNV over every body was 2 % of a learning run.
         for b in &self.bodies {
-            digest.write_u32(b.id);
-            digest.write_i32(b.pos.x);
-            digest.write_i32(b.pos.y);
-            digest.write_u64(b.heading.to_bits());
+            digest.write_word(u64::from(b.id) << 32 | u64::from(b.pos.x as u32));
+            digest.write_word(u64::from(b.pos.y as u32) << 32 | b.carrying.len() as u64);
+            digest.write_word(b.heading.to_bits());
             for &o in &b.carrying {
-                digest.write_u32(o);
+                digest.write_word(u64::from(o));
             }
         }
         rep.digest = digest.finish();
