@@ -70,13 +70,22 @@ impl Geometry {
 
     /// Column/row of a point: floor division, points at or beyond the +edge go to the
     /// last column/row, points beyond the −edge to the first (REFERENCE §1.2).
+    ///
+    /// Half the arena is a multiple of the grid, so the column of x is
+    /// ⌊(x + W/2) / GS⌋, clamped: one division per axis in the usual case (this runs
+    /// for every agent and object look-up of every step).
     pub fn col_row(&self, p: Pos) -> (i32, i32) {
-        let g = self.grid;
-        let kx = if p.x >= self.half_w() { self.half_w() / g - 1 } else { p.x.div_euclid(g) };
-        let ky = if p.y >= self.half_h() { self.half_h() / g - 1 } else { p.y.div_euclid(g) };
-        let col = (kx + self.half_w() / g).clamp(0, self.cols() - 1);
-        let row = (ky + self.half_h() / g).clamp(0, self.rows() - 1);
-        (col, row)
+        let along = |v: i32, extent: i32| {
+            let t = i64::from(v) + i64::from(extent / 2);
+            if t <= 0 {
+                0
+            } else if t >= i64::from(extent) {
+                extent / self.grid - 1
+            } else {
+                (t / i64::from(self.grid)) as i32
+            }
+        };
+        (along(p.x, self.width), along(p.y, self.height))
     }
 
     pub fn cell_of(&self, p: Pos) -> CellIdx {
@@ -176,6 +185,31 @@ pub fn step_destination(geom: &Geometry, from: Pos, heading: f64, speed: f64) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The reference's rule, literally: floor division, then the edges.
+    fn col_row_literal(g: &Geometry, p: Pos) -> (i32, i32) {
+        let gs = g.grid;
+        let kx = if p.x >= g.half_w() { g.half_w() / gs - 1 } else { p.x.div_euclid(gs) };
+        let ky = if p.y >= g.half_h() { g.half_h() / gs - 1 } else { p.y.div_euclid(gs) };
+        ((kx + g.half_w() / gs).clamp(0, g.cols() - 1), (ky + g.half_h() / gs).clamp(0, g.rows() - 1))
+    }
+
+    #[test]
+    fn col_row_is_the_literal_rule() {
+        for (w, h, gs) in [(100, 100, 10), (100, 100, 2), (100, 100, 5), (60, 40, 10), (2, 2, 1), (100, 100, 50)] {
+            let g = Geometry::new(w, h, gs).unwrap();
+            for x in -w..=w {
+                for y in [-h - 3, -h / 2 - 1, -h / 2, -1, 0, 1, h / 2 - 1, h / 2, h + 7] {
+                    for p in [Pos::new(x, y), Pos::new(y, x)] {
+                        assert_eq!(g.col_row(p), col_row_literal(&g, p), "{w}x{h}/{gs} at {p:?}");
+                    }
+                }
+            }
+            for p in [Pos::new(i32::MAX, i32::MIN), Pos::new(i32::MIN, i32::MAX)] {
+                assert_eq!(g.col_row(p), col_row_literal(&g, p));
+            }
+        }
+    }
 
     #[test]
     fn cell_rules_match_reference() {
