@@ -179,7 +179,9 @@ pub struct Learner {
 /// caches, where one per learner (tens of kilobytes each) did not.
 #[derive(Default)]
 pub struct GeneCache {
-    by_sender: std::collections::HashMap<AgentId, Individual>,
+    /// Indexed by sender id (ids are dense; ids from [`MAX_CACHED_SENDER`] on are not
+    /// cached).
+    by_sender: Vec<Option<Individual>>,
     /// The grammar (by address) and limits the entries were mapped with: learners that
     /// map differently never see each other's entries.
     mapped_with: Option<(usize, ge::MapLimits)>,
@@ -193,6 +195,10 @@ pub struct GeneCache {
     /// a run.
     trees: std::collections::HashMap<Arc<str>, Bt, foldhash::fast::FixedState>,
 }
+
+/// Sender ids a [`GeneCache`] keeps genes of: `0..MAX_CACHED_SENDER` (a world hosts
+/// far fewer agents; a larger id from the wire is mapped every time).
+const MAX_CACHED_SENDER: AgentId = 1 << 16;
 
 /// Most behaviour trees a [`GeneCache`] keeps.
 const TREES_KEPT: usize = 8192;
@@ -221,12 +227,11 @@ impl GeneCache {
     /// genome the sender published, so the address settles most look-ups; genomes that
     /// arrived over the wire are compared codon by codon.
     fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &Arc<[u32]>, params: &ge::GeParams) -> Individual {
-        let key = (grammar as *const Grammar as usize, params.map_limits());
-        if self.mapped_with != Some(key) {
-            self.by_sender.clear();
-            self.mapped_with = Some(key);
-        }
-        match self.by_sender.get_mut(&from) {
+        self.map_with(grammar, params);
+        let Some(slot) = self.slot(from) else {
+            return ge::evaluate_stats_with(&mut self.mapper, grammar, genome.clone(), params);
+        };
+        match slot {
             // black_box: LLVM otherwise folds the address test into the comparison
             // (equal addresses compare equal) and compares every codon each time.
             Some(ind) if std::hint::black_box(Arc::ptr_eq(&ind.genome, genome)) => ind.clone(),
@@ -238,9 +243,32 @@ impl GeneCache {
             }
             _ => {
                 let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome.clone(), params);
-                self.by_sender.insert(from, ind.clone());
+                if let Some(slot) = self.slot(from) {
+                    *slot = Some(ind.clone());
+                }
                 ind
             }
+        }
+    }
+
+    /// The entry of sender `from`, if its id is cached.
+    fn slot(&mut self, from: AgentId) -> Option<&mut Option<Individual>> {
+        if from >= MAX_CACHED_SENDER {
+            return None;
+        }
+        let i = from as usize;
+        if i >= self.by_sender.len() {
+            self.by_sender.resize(i + 1, None);
+        }
+        self.by_sender.get_mut(i)
+    }
+
+    /// Forget the entries unless they were mapped with this grammar and these limits.
+    fn map_with(&mut self, grammar: &Grammar, params: &ge::GeParams) {
+        let key = (grammar as *const Grammar as usize, params.map_limits());
+        if self.mapped_with != Some(key) {
+            self.by_sender.clear();
+            self.mapped_with = Some(key);
         }
     }
 }
