@@ -9,7 +9,7 @@
 //! - [`view`]: an agent's local world model, blackboard and static memory for one tick.
 //! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness),
 //!   and the per-process [`GeneCache`] of received genes' mappings (which also holds the
-//!   genetic step's scratch buffers).
+//!   genetic step's scratch buffers and the behaviour trees of adopted phenotypes).
 pub mod bt;
 pub mod ge;
 pub mod grammars;

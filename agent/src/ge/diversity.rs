@@ -305,7 +305,7 @@ impl RunEffect {
 }
 
 /// The [`count`] state machine fed with pre-scanned tokens, run after run, as the
-/// mapper emits them. `Copy` and small, so a genetic step can snapshot it at every codon
+/// mapper emits them. `Copy` and small, so a genetic step can keep it at a codon
 /// (`ge::tape`).
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, Hash)]
 pub(crate) struct DiversityScan {

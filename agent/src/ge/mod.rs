@@ -13,7 +13,7 @@
 //! - [`operators`]: parameters, individuals and one genetic step (§5.1, §5.6).
 //! - `ceiling`: the highest D a grammar's valid individuals can score.
 //! - `crossover`: the genetic step's crossover pairs, drawn from the accepted ones.
-//! - `tape`: recorded mappings the genetic step resumes offspring from.
+//! - `tape`: mappings that keep the state at a child's first mutated codon, to resume from.
 
 mod ceiling;
 mod compiled;

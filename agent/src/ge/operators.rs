@@ -7,7 +7,9 @@
 //! replacement with elitism — and it runs for every agent every few world steps, so it
 //! is written to be cheap while keeping PonyGE2's law: crossover pairs are drawn from
 //! the attempts that survive the length check (`ge::crossover`), mutated codons by the
-//! gaps between them, offspring are mapped by resuming recorded mappings (`ge::tape`),
+//! gaps between them, drawn while the child is mapped, a mutated child is mapped from
+//! its first changed codon (`ge::tape`), the step stops making offspring once one
+//! scores the grammar's ceiling of D, which no later one can beat (`ge::ceiling`),
 //! offspring genomes live in one arena, buffers are reused, and only the winner's
 //! phenotype becomes an `Arc<str>`.
 //!
