@@ -139,8 +139,55 @@ pub struct GeneMsg {
     /// Shared, not copied: in one process every cell-mate (and the sender's own
     /// individual) holds the same codons, and the receivers' gene cache recognises a
     /// genome it mapped by address. On the wire it is a plain sequence of codons.
+    #[serde(deserialize_with = "codons::deserialize")]
     pub genome: std::sync::Arc<[u32]>,
     pub fitness: f64,
+}
+
+/// Decoding a genome with one allocation: serde's `Arc<[u32]>` goes through a `Vec`
+/// and copies it into the `Arc` (two allocations per gene, and an agent process
+/// decodes every cell-mate's gene every step).
+mod codons {
+    use serde::de::{Deserializer, SeqAccess, Visitor};
+    use std::cell::RefCell;
+    use std::sync::Arc;
+
+    thread_local! {
+        /// Reused for every genome decoded on this thread.
+        static BUF: RefCell<Vec<u32>> = const { RefCell::new(Vec::new()) };
+    }
+
+    struct Codons;
+
+    impl<'de> Visitor<'de> for Codons {
+        type Value = Arc<[u32]>;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("a sequence of codons")
+        }
+
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Arc<[u32]>, A::Error> {
+            BUF.with(|buf| {
+                // A genome decoded inside another one's decoding cannot happen; fall back
+                // to a fresh buffer rather than panic if it ever did.
+                let mut fresh = Vec::new();
+                let mut guard = buf.try_borrow_mut();
+                let v: &mut Vec<u32> = match guard.as_deref_mut() {
+                    Ok(v) => v,
+                    Err(_) => &mut fresh,
+                };
+                v.clear();
+                while let Some(c) = seq.next_element::<u32>()? {
+                    v.push(c);
+                }
+                Ok(Arc::from(&v[..]))
+            })
+        }
+    }
+
+    pub(super) fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Arc<[u32]>, D::Error> {
+        d.deserialize_seq(Codons)
+    }
 }
 
 /// One primitive change an agent asks the world to make, applied in order.
