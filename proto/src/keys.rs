@@ -121,6 +121,30 @@ pub fn all_gene_batches(run: &str) -> String {
     format!("geese/{run}/cell/*/*/genes/*")
 }
 
+/// The percepts of every occupied cell of a step as one [`crate::net::PerceptBundle`]
+/// (the subscription of a process hosting many agents: one delivery per step instead of
+/// one per cell).
+pub fn every_percept(run: &str) -> String {
+    format!("geese/{run}/cells/percepts")
+}
+
+/// The world's gene aggregates of every shared cell of a step as one
+/// [`crate::net::GeneBundle`] (the subscription of a process hosting many agents).
+pub fn every_cell_genes(run: &str) -> String {
+    format!("geese/{run}/cells/genes")
+}
+
+/// The gene batches of every shared cell of the agent process speaking for `from`, as
+/// one [`crate::net::GeneBundle`] per step.
+pub fn agents_genes(run: &str, from: AgentRange) -> String {
+    format!("geese/{run}/agent/{from}/genes")
+}
+
+/// Every agent process's gene bundles (the world's subscription).
+pub fn all_agents_genes(run: &str) -> String {
+    format!("geese/{run}/agent/*/genes")
+}
+
 /// Intents of the agents of `from` (`agent/<id>/action` for one agent).
 pub fn agents_action(run: &str, from: AgentRange) -> String {
     format!("geese/{run}/agent/{from}/action")
@@ -156,6 +180,12 @@ pub fn agents_presence(run: &str, agents: AgentRange) -> String {
     format!("geese/{run}/presence/agents/{agents}")
 }
 
+/// Liveliness token of an agent process that reads cells one topic per cell (not the
+/// world's bundles): while one is present the world publishes per-cell messages.
+pub fn cells_presence(run: &str, agents: AgentRange) -> String {
+    format!("geese/{run}/presence/cells/{agents}")
+}
+
 /// Every liveliness token of a run.
 pub fn all_presence(run: &str) -> String {
     format!("geese/{run}/presence/**")
@@ -177,9 +207,19 @@ pub enum Parsed {
     Action {
         from: AgentRange,
     },
+    /// [`every_percept`].
+    PerceptBundle,
+    /// [`every_cell_genes`] (`from` = `None`) or [`agents_genes`].
+    GeneBundle {
+        from: Option<AgentRange>,
+    },
     WorldPresence,
     OrchestratorPresence,
     AgentsPresence {
+        agents: AgentRange,
+    },
+    /// [`cells_presence`].
+    CellsPresence {
         agents: AgentRange,
     },
     Other,
@@ -215,10 +255,20 @@ pub fn parse(run: &str, key: &str) -> Parsed {
             Some(from) => Parsed::Action { from },
             None => Parsed::Other,
         },
+        ["agent", from, "genes"] => match AgentRange::parse(from) {
+            Some(from) => Parsed::GeneBundle { from: Some(from) },
+            None => Parsed::Other,
+        },
+        ["cells", "percepts"] => Parsed::PerceptBundle,
+        ["cells", "genes"] => Parsed::GeneBundle { from: None },
         ["presence", "world"] => Parsed::WorldPresence,
         ["presence", "orchestrator"] => Parsed::OrchestratorPresence,
         ["presence", "agents", a] => match AgentRange::parse(a) {
             Some(agents) => Parsed::AgentsPresence { agents },
+            None => Parsed::Other,
+        },
+        ["presence", "cells", a] => match AgentRange::parse(a) {
+            Some(agents) => Parsed::CellsPresence { agents },
             None => Parsed::Other,
         },
         _ => Parsed::Other,
@@ -256,6 +306,11 @@ mod tests {
         assert_eq!(parse("r", &super::agents_action("r", many)), Parsed::Action { from: many });
         assert_eq!(parse("r", &super::agents_presence("r", one)), Parsed::AgentsPresence { agents: one });
         assert_eq!(parse("r", &super::world_presence("r")), Parsed::WorldPresence);
+        assert_eq!(parse("r", &super::cells_presence("r", many)), Parsed::CellsPresence { agents: many });
+        assert_eq!(parse("r", &super::every_percept("r")), Parsed::PerceptBundle);
+        assert_eq!(parse("r", &super::every_cell_genes("r")), Parsed::GeneBundle { from: None });
+        assert_eq!(parse("r", &super::agents_genes("r", many)), Parsed::GeneBundle { from: Some(many) });
+        assert_eq!(parse("r", "geese/r/agent/x/genes"), Parsed::Other);
         assert_eq!(parse("r", "geese/other/agent/1/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/agent/x/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/cell/-1/2/percept"), Parsed::Other);

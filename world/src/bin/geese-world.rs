@@ -14,8 +14,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, GeneBatch, IntentBatch, NetCounters, NetReport, NetRunSpec, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT,
-    NO_CELL,
+    loss_draw, GeneBatch, IntentBatch, NetCounters, NetReport, NetRunSpec, PerceptBundle, ReportMsg, RunInfo, Tick,
+    LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
@@ -129,16 +129,27 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         step: 0,
         cells: HashMap::new(),
         hostile: 0,
+        sent: Vec::new(),
+        bundled: false,
+        per_cell: true,
     }));
-    let (h, s2) = (genes.clone(), session.clone());
+    let (h, s2, r2) = (genes.clone(), session.clone(), run.clone());
     let _genes = session
         .declare_subscriber(keys::all_gene_batches(&run))
         .callback(move |s| {
             let bytes = s.payload().to_bytes();
             let out = h.lock().unwrap_or_else(|e| e.into_inner()).on_batch(s.key_expr().as_str(), &bytes);
-            if let Some((key, agg)) = out {
-                let _ = s2.put(key, agg).congestion_control(CongestionControl::Block).wait();
-            }
+            out.publish(&s2, &r2);
+        })
+        .await
+        .map_err(zerr)?;
+    let (h, s2, r2) = (genes.clone(), session.clone(), run.clone());
+    let _gene_bundles = session
+        .declare_subscriber(keys::all_agents_genes(&run))
+        .callback(move |s| {
+            let bytes = s.payload().to_bytes();
+            let out = h.lock().unwrap_or_else(|e| e.into_inner()).on_bundle(s.key_expr().as_str(), &bytes);
+            out.publish(&s2, &r2);
         })
         .await
         .map_err(zerr)?;
@@ -342,6 +353,32 @@ struct GeneHub {
     step: u64,
     cells: HashMap<u32, CellAgg>,
     hostile: u32,
+    /// The aggregates sent so far this step, for the bundle of every cell.
+    sent: Vec<GeneBatch>,
+    bundled: bool,
+    /// Whether to publish each cell's aggregate on its own topic (some process reads
+    /// cells one by one).
+    per_cell: bool,
+}
+
+/// What filing gene batches releases: per-cell aggregates (key, bytes), and the bundle
+/// of every cell once the last one is complete.
+#[derive(Default)]
+struct Released {
+    cells: Vec<(String, Vec<u8>)>,
+    bundle: Option<Vec<u8>>,
+}
+
+impl Released {
+    /// Publish everything (from a subscriber callback: synchronous puts).
+    fn publish(self, session: &Session, run: &str) {
+        for (key, bytes) in self.cells {
+            let _ = session.put(key, bytes).congestion_control(CongestionControl::Block).wait();
+        }
+        if let Some(bytes) = self.bundle {
+            let _ = session.put(keys::every_cell_genes(run), bytes).congestion_control(CongestionControl::Block).wait();
+        }
+    }
 }
 
 struct CellAgg {
@@ -351,33 +388,65 @@ struct CellAgg {
 }
 
 impl GeneHub {
-    fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>) {
+    fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>, per_cell: bool) {
         self.step = step;
+        self.per_cell = per_cell;
         self.hostile = 0;
+        self.sent.clear();
+        self.bundled = false;
         self.cells =
             cells.into_iter().map(|(c, expect)| (c, CellAgg { expect, got: Vec::new(), sent: false })).collect();
     }
 
-    /// File one batch; returns the aggregate to publish (key, bytes) when the cell is complete.
-    fn on_batch(&mut self, key: &str, bytes: &[u8]) -> Option<(String, Vec<u8>)> {
+    /// File one batch published on its cell's key.
+    fn on_batch(&mut self, key: &str, bytes: &[u8]) -> Released {
         let Parsed::Genes { cx, cy, from: Some(from) } = keys::parse(&self.run, key) else {
             self.hostile += 1;
-            return None;
+            return Released::default();
         };
-        let batch: GeneBatch = match decode(bytes) {
-            Ok(b) => b,
-            Err(_) => {
-                self.hostile += 1;
-                return None;
-            }
+        let Ok(batch) = decode::<GeneBatch>(bytes) else {
+            self.hostile += 1;
+            return Released::default();
         };
         let cell_ok =
             cx < self.geom.cols() && cy < self.geom.rows() && batch.cell == (cy * self.geom.cols() + cx) as u32;
-        if !cell_ok
-            || !batch.genes.iter().all(|g| from.contains(g.from) && g.step == batch.step)
+        if !cell_ok {
+            self.hostile += 1;
+            return Released::default();
+        }
+        let mut out = Released::default();
+        out.cells.extend(self.file(from, batch));
+        out.bundle = self.bundle();
+        out
+    }
+
+    /// File the batches of one process's bundle.
+    fn on_bundle(&mut self, key: &str, bytes: &[u8]) -> Released {
+        let (Parsed::GeneBundle { from: Some(from) }, Ok(bundle)) =
+            (keys::parse(&self.run, key), decode::<geese_proto::net::GeneBundle>(bytes))
+        else {
+            self.hostile += 1;
+            return Released::default();
+        };
+        let mut out = Released::default();
+        for batch in bundle.batches {
+            if batch.step != bundle.step || batch.cell as usize >= self.geom.cell_count() {
+                self.hostile += 1;
+                continue;
+            }
+            out.cells.extend(self.file(from, batch));
+        }
+        out.bundle = self.bundle();
+        out
+    }
+
+    /// File one batch of the process speaking for `from`; returns the cell's aggregate
+    /// to publish (key, bytes) when the cell is complete.
+    fn file(&mut self, from: AgentRange, batch: GeneBatch) -> Option<(String, Vec<u8>)> {
+        if !batch.genes.iter().all(|g| from.contains(g.from) && g.step == batch.step)
             || !batch.absent.iter().all(|&a| from.contains(a))
         {
-            // Wrong cell, or genes of agents the sender does not speak for.
+            // Genes of agents the sender does not speak for.
             self.hostile += 1;
             return None;
         }
@@ -391,21 +460,33 @@ impl GeneHub {
         if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _)| *r == from) {
             return None;
         }
+        let cell = batch.cell;
         agg.got.push((from, batch));
-        let cell = agg.got[0].1.cell;
         self.complete(cell)
     }
 
+    /// The bundle of every cell's aggregate, once, when the last cell is complete.
+    fn bundle(&mut self) -> Option<Vec<u8>> {
+        if self.bundled || self.cells.is_empty() || !self.cells.values().all(|a| a.sent) {
+            return None;
+        }
+        self.bundled = true;
+        let mut batches = std::mem::take(&mut self.sent);
+        batches.sort_by_key(|b| b.cell);
+        encode(&geese_proto::net::GeneBundle { step: self.step, batches }).ok()
+    }
+
     /// A process left: stop waiting for it.
-    fn forget(&mut self, gone: AgentRange) -> Vec<(String, Vec<u8>)> {
+    fn forget(&mut self, gone: AgentRange) -> Released {
         let cells: Vec<u32> = self.cells.keys().copied().collect();
-        let mut out = Vec::new();
+        let mut out = Released::default();
         for c in cells {
             if let Some(agg) = self.cells.get_mut(&c) {
                 agg.expect.retain(|r| *r != gone);
             }
-            out.extend(self.complete(c));
+            out.cells.extend(self.complete(c));
         }
+        out.bundle = self.bundle();
         out
     }
 
@@ -422,9 +503,14 @@ impl GeneHub {
         }
         all.genes.sort_by_key(|g| g.from);
         all.absent.sort_unstable();
-        let (cx, cy) = self.geom.cell_col_row(cell);
-        let bytes = encode(&all).ok()?;
-        Some((keys::cell_genes(&self.run, cx, cy), bytes))
+        let out = if self.per_cell {
+            let (cx, cy) = self.geom.cell_col_row(cell);
+            encode(&all).ok().map(|bytes| (keys::cell_genes(&self.run, cx, cy), bytes))
+        } else {
+            None
+        };
+        self.sent.push(all);
+        out
     }
 }
 
@@ -441,6 +527,8 @@ struct Server<'a> {
     /// Present agent processes (tokens per id range: a restarted process may briefly
     /// overlap the token of the one it replaces).
     hosts: BTreeMap<AgentRange, u32>,
+    /// Present agent processes that read cells one topic per cell (tokens per range).
+    narrow: BTreeMap<AgentRange, u32>,
     orchestrator: bool,
     /// Agents whose process came (back) since the last step: revive them.
     revive: Vec<u32>,
@@ -480,6 +568,7 @@ impl<'a> Server<'a> {
             genes,
             n,
             hosts: BTreeMap::new(),
+            narrow: BTreeMap::new(),
             orchestrator: false,
             revive: Vec::new(),
             scheduled: Vec::new(),
@@ -593,7 +682,8 @@ impl<'a> Server<'a> {
                 }
                 shared.retain(|_, v| v.len() > 1);
             }
-            self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared);
+            let per_cell = !self.narrow.is_empty();
+            self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared, per_cell);
         }
         // 1. The tick (bare: every step; otherwise when the live set changed), then the
         //    percepts of every occupied cell.
@@ -606,11 +696,17 @@ impl<'a> Server<'a> {
                 zenoh_bus::put(self.session, &keys::tick(&self.run), encode(&Tick { step, cells })?).await?;
                 self.announced = Some(live);
             }
-            for p in self.world.percepts() {
-                let ke = self.percept_key(p.cell);
-                let bytes = encode(&p)?;
-                self.session.put(ke, bytes).congestion_control(CongestionControl::Block).await.map_err(zerr)?;
+            let percepts = self.world.percepts();
+            // Per-cell topics only while some process reads them.
+            if !self.narrow.is_empty() {
+                for p in &percepts {
+                    let ke = self.percept_key(p.cell);
+                    let bytes = encode(p)?;
+                    self.session.put(ke, bytes).congestion_control(CongestionControl::Block).await.map_err(zerr)?;
+                }
             }
+            let bundle = encode(&PerceptBundle { step, percepts })?;
+            zenoh_bus::put(self.session, &keys::every_percept(&self.run), bundle).await?;
         }
         // 2–3 happen in the agent processes. 4. Gather intents.
         let started = Instant::now();
@@ -703,9 +799,7 @@ impl<'a> Server<'a> {
                             }
                         }
                         let ready = self.genes.lock().unwrap_or_else(|e| e.into_inner()).forget(agents);
-                        for (key, bytes) in ready {
-                            let _ = self.session.put(key, bytes).congestion_control(CongestionControl::Block).wait();
-                        }
+                        ready.publish(self.session, &self.run);
                         // Its agents stop here: bodies idle, carried items dropped.
                         for id in agents.ids().filter(|&id| (id as usize) < self.n) {
                             if !self.hosts.keys().any(|r| r.contains(id)) {
@@ -715,6 +809,16 @@ impl<'a> Server<'a> {
                             }
                         }
                         eprintln!("geese-world: agent process {agents} left at step {step}");
+                    }
+                }
+                Parsed::CellsPresence { agents } => {
+                    if alive {
+                        *self.narrow.entry(agents).or_insert(0) += 1;
+                    } else if let Some(c) = self.narrow.get_mut(&agents) {
+                        *c -= 1;
+                        if *c == 0 {
+                            self.narrow.remove(&agents);
+                        }
                     }
                 }
                 Parsed::OrchestratorPresence => {
