@@ -15,7 +15,9 @@ use crate::bt::{Bt, BuildError};
 use crate::ge::{self, GeParams, Grammar, Individual};
 use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
-use geese_proto::{AgentId, AgentStats, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept, Regime};
+use geese_proto::{
+    AgentId, AgentStats, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept, Regime,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -168,23 +170,15 @@ pub struct Learner {
     have_percept: bool,
 }
 
-/// The mapping of the gene each sender offered last, shared by every learner of a
-/// process (the in-process trial, or one agent process). A sender offers the same gene
-/// step after step until it evolves, and all its cell-mates receive it: without the
-/// cache every receiver mapped every arriving gene again, k² mappings per crowded cell
-/// per step instead of at most k. Memory is one genome per sender seen.
+/// What the learners of one process (the in-process trial, or one agent process) share.
 ///
-/// It also holds the genetic step's scratch buffers, shared by the learners for the
-/// same reason a process has one cache: one set of buffers stays warm in the CPU
-/// caches, where one per learner (tens of kilobytes each) did not.
+/// The genetic step's scratch buffers: one set stays warm in the CPU caches, where one
+/// per learner (tens of kilobytes each) did not. And the behaviour trees of adopted
+/// phenotypes (below). Received genes need no cache: a gene message carries the sender's
+/// mapping of its genome ([`GeneMsg::mapping`]).
 #[derive(Default)]
 pub struct GeneCache {
-    /// Indexed by sender id (ids are dense; ids from [`MAX_CACHED_SENDER`] on are not
-    /// cached).
-    by_sender: Vec<Option<Individual>>,
-    /// The grammar (by address) and limits the entries were mapped with: learners that
-    /// map differently never see each other's entries.
-    mapped_with: Option<(usize, ge::MapLimits)>,
+    /// For received genes whose claimed mapping is implausible.
     mapper: ge::Mapper,
     workspace: ge::Workspace,
     /// The behaviour trees of the phenotypes adopted lately, by phenotype: a run adopts
@@ -195,10 +189,6 @@ pub struct GeneCache {
     /// a run.
     trees: std::collections::HashMap<Arc<str>, Bt, foldhash::fast::FixedState>,
 }
-
-/// Sender ids a [`GeneCache`] keeps genes of: `0..MAX_CACHED_SENDER` (a world hosts
-/// far fewer agents; a larger id from the wire is mapped every time).
-const MAX_CACHED_SENDER: AgentId = 1 << 16;
 
 /// Most behaviour trees a [`GeneCache`] keeps.
 const TREES_KEPT: usize = 8192;
@@ -222,53 +212,22 @@ impl GeneCache {
         Ok(t)
     }
 
-    /// The evaluated individual of `from`'s `genome` (a copy sharing the codons; its
-    /// fitness is the caller's to set). In one process every receiver holds the very
-    /// genome the sender published, so the address settles most look-ups; genomes that
-    /// arrived over the wire are compared codon by codon.
-    fn evaluate(&mut self, grammar: &Grammar, from: AgentId, genome: &Arc<[u32]>, params: &ge::GeParams) -> Individual {
-        self.map_with(grammar, params);
-        let Some(slot) = self.slot(from) else {
-            return ge::evaluate_stats_with(&mut self.mapper, grammar, genome.clone(), params);
-        };
-        match slot {
-            // black_box: LLVM otherwise folds the address test into the comparison
-            // (equal addresses compare equal) and compares every codon each time.
-            Some(ind) if std::hint::black_box(Arc::ptr_eq(&ind.genome, genome)) => ind.clone(),
-            Some(ind) if ind.genome == *genome => {
-                // The same gene decoded anew (it came over the wire): keep this copy, so
-                // the other receivers of this step find it by address.
-                ind.genome = genome.clone();
-                ind.clone()
-            }
-            _ => {
-                let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome.clone(), params);
-                if let Some(slot) = self.slot(from) {
-                    *slot = Some(ind.clone());
-                }
-                ind
-            }
+    /// The individual of a received gene (its fitness is the caller's to set), with the
+    /// sender's mapping when it is plausible — a valid genome uses between one codon
+    /// and all of them and has a depth — and mapped here otherwise.
+    fn received(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Individual {
+        let m = g.mapping;
+        let plausible = !m.valid || ((1..=g.genome.len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
+        if !plausible {
+            return ge::evaluate_stats_with(&mut self.mapper, grammar, g.genome.clone(), params);
         }
-    }
-
-    /// The entry of sender `from`, if its id is cached.
-    fn slot(&mut self, from: AgentId) -> Option<&mut Option<Individual>> {
-        if from >= MAX_CACHED_SENDER {
-            return None;
-        }
-        let i = from as usize;
-        if i >= self.by_sender.len() {
-            self.by_sender.resize(i + 1, None);
-        }
-        self.by_sender.get_mut(i)
-    }
-
-    /// Forget the entries unless they were mapped with this grammar and these limits.
-    fn map_with(&mut self, grammar: &Grammar, params: &ge::GeParams) {
-        let key = (grammar as *const Grammar as usize, params.map_limits());
-        if self.mapped_with != Some(key) {
-            self.by_sender.clear();
-            self.mapped_with = Some(key);
+        Individual {
+            genome: g.genome.clone(),
+            valid: m.valid,
+            phenotype: None,
+            used_codons: if m.valid { m.used_codons as usize } else { 0 },
+            depth: if m.valid { m.depth as usize } else { 0 },
+            fitness: f64::NAN,
         }
     }
 }
@@ -351,7 +310,9 @@ impl Learner {
         if !self.expected.is_sorted() {
             self.expected.sort_unstable();
         }
-        Some(GeneMsg { step: self.step, from: self.id, genome: self.gene.genome.clone(), fitness: self.gene.fitness })
+        let g = &self.gene;
+        let mapping = GeneMapping { valid: g.valid(), used_codons: g.used_codons as u32, depth: g.depth as u32 };
+        Some(GeneMsg { step: self.step, from: self.id, genome: g.genome.clone(), fitness: g.fitness, mapping })
     }
 
     /// Cell-mates whose genes this step should bring (sorted by id).
@@ -463,7 +424,7 @@ impl Learner {
                 let ind = match s {
                     None => self.gene.clone(),
                     Some(g) => {
-                        let mut ind = cache.evaluate(&self.grammar, g.from, &g.genome, &self.cfg.ge);
+                        let mut ind = cache.received(&self.grammar, g, &self.cfg.ge);
                         if !ind.valid() {
                             *lost += 1;
                             continue;
@@ -513,31 +474,29 @@ mod tests {
     }
 
     #[test]
-    fn gene_cache_reuses_a_senders_gene_and_never_mixes_grammars() {
+    fn received_genes_take_the_senders_mapping_unless_implausible() {
         let forage = grammar("betr-foraging-avoid");
-        let sf = grammar("geese-bt-foraging");
         let p = ge::GeParams::default();
         let genome: Arc<[u32]> = Arc::from([
             1213, 1114, 267, 757, 1875, 1236, 970, 1281, 1189, 134, 1240, 26, 1861, 1715, 960, 531, 1128, 479, 392,
         ]);
-        let mut cache = GeneCache::new();
-        let a = cache.evaluate(&forage, 3, &genome, &p);
         let fresh = ge::evaluate(&forage, genome.clone(), &p);
-        assert!(a.valid());
+        let msg = |mapping| GeneMsg { step: 1, from: 3, genome: genome.clone(), fitness: 2.0, mapping };
+        let honest = GeneMapping { valid: true, used_codons: fresh.used_codons as u32, depth: fresh.depth as u32 };
+        let mut cache = GeneCache::new();
+        let a = cache.received(&forage, &msg(honest), &p);
+        assert!(a.valid() && Arc::ptr_eq(&a.genome, &genome));
         assert_eq!((a.used_codons, a.depth), (fresh.used_codons, fresh.depth));
-        // Same sender, same gene: served from the cache (also an equal copy that came
-        // over the wire); a changed gene is mapped anew.
-        let b = cache.evaluate(&forage, 3, &genome, &p);
-        assert!(Arc::ptr_eq(&b.genome, &genome));
-        assert_eq!((b.used_codons, b.depth), (a.used_codons, a.depth));
-        let copy: Arc<[u32]> = Arc::from(genome.to_vec());
-        let b = cache.evaluate(&forage, 3, &copy, &p);
-        assert_eq!((&b.genome, b.used_codons, b.depth), (&genome, a.used_codons, a.depth));
-        let other: Arc<[u32]> = Arc::from(vec![0u32; 20]);
-        assert!(!cache.evaluate(&forage, 3, &other, &p).valid());
-        // Another grammar maps the same genome in its own way.
-        let c = cache.evaluate(&sf, 3, &genome, &p);
-        let want = ge::evaluate(&sf, genome.clone(), &p);
-        assert_eq!((c.valid(), c.used_codons, c.depth), (want.valid(), want.used_codons, want.depth));
+        // Implausible claims are not taken: the gene is mapped here.
+        for bad in [
+            GeneMapping { valid: true, used_codons: 0, depth: 10 },
+            GeneMapping { valid: true, used_codons: 99, depth: 10 },
+            GeneMapping { valid: true, used_codons: 12, depth: 0 },
+        ] {
+            let b = cache.received(&forage, &msg(bad), &p);
+            assert_eq!((b.valid(), b.used_codons, b.depth), (true, fresh.used_codons, fresh.depth), "{bad:?}");
+        }
+        // A gene its sender calls invalid stays invalid (the receiver drops it).
+        assert!(!cache.received(&forage, &msg(GeneMapping::default()), &p).valid());
     }
 }

@@ -5,7 +5,7 @@
 use serde::{de::DeserializeOwned, Serialize};
 
 /// Bumped whenever a message type changes shape.
-pub const WIRE_VERSION: u8 = 3;
+pub const WIRE_VERSION: u8 = 4;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
@@ -41,7 +41,8 @@ mod tests {
 
     #[test]
     fn round_trip_and_rejects() {
-        let g = GeneMsg { step: 3, from: 9, genome: vec![1, 2, 2000].into(), fitness: 1.5 };
+        let mapping = GeneMapping { valid: true, used_codons: 2, depth: 3 };
+        let g = GeneMsg { step: 3, from: 9, genome: vec![1, 2, 2000].into(), fitness: 1.5, mapping };
         let b = encode(&g).unwrap();
         assert_eq!(decode::<GeneMsg>(&b).unwrap(), g);
         let mut bad = b.clone();

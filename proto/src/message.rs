@@ -142,6 +142,22 @@ pub struct GeneMsg {
     #[serde(deserialize_with = "codons::deserialize")]
     pub genome: std::sync::Arc<[u32]>,
     pub fitness: f64,
+    /// The sender's mapping of the genome. Every learner of a run maps with the run's
+    /// grammar and limits, so receivers take it instead of mapping every arriving gene
+    /// again (an agent process hosting many agents received about 900 changed genes per
+    /// step with 1,000 agents, and ten processes mapped each of them); a receiver maps a
+    /// gene itself only when the claim is implausible. Like the fitness, it is the
+    /// sender's word: a false one can mislead evolution but not break a receiver.
+    pub mapping: GeneMapping,
+}
+
+/// How a genome maps (see [`GeneMsg::mapping`]); used codons and depth are 0 when it
+/// is invalid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub struct GeneMapping {
+    pub valid: bool,
+    pub used_codons: u32,
+    pub depth: u32,
 }
 
 /// Decoding a genome with one allocation: serde's `Arc<[u32]>` goes through a `Vec`

@@ -279,14 +279,33 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                                 from: 9,
                                 genome: vec![1, 2].into(),
                                 fitness: 1.0,
+                                mapping: Default::default(),
                             }],
                             absent: vec![],
+                        })
+                        .expect("encode"),
+                    ),
+                    // Bundles: garbage from an agent process, and a bundle holding a batch
+                    // of agents its key does not cover.
+                    (keys::agents_genes(&run, from0), garbage.clone()),
+                    (
+                        keys::agents_genes(&run, from0),
+                        encode(&geese_proto::net::GeneBundle {
+                            step: round + 1,
+                            batches: vec![GeneBatch {
+                                step: round + 1,
+                                cell: (cy * 10 + cx) as u32,
+                                genes: vec![],
+                                absent: vec![11],
+                            }],
                         })
                         .expect("encode"),
                     ),
                     // Garbage where the agents listen: the cell's genes and percepts, ticks.
                     (keys::cell_genes(&run, cx, cy), garbage.clone()),
                     (keys::cell_percept(&run, cx, cy), garbage.clone()),
+                    (keys::every_percept(&run), garbage.clone()),
+                    (keys::every_cell_genes(&run), garbage.clone()),
                     (keys::tick(&run), garbage.clone()),
                     (keys::ctl(&run, "schedule"), garbage.clone()),
                 ];
