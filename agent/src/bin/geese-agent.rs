@@ -220,6 +220,21 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
     res
 }
 
+/// A message about one cell.
+trait Cell {
+    fn cell(&self) -> u32;
+}
+impl Cell for Percept {
+    fn cell(&self) -> u32 {
+        self.cell
+    }
+}
+impl Cell for GeneBatch {
+    fn cell(&self) -> u32 {
+        self.cell
+    }
+}
+
 fn zerr(e: zenoh::Error) -> anyhow::Error {
     anyhow::Error::new(geese_proto::zenoh_bus::zerr(e))
 }
@@ -475,15 +490,7 @@ impl Host {
                 _ => self.counters.hostile += 1,
             },
             Event::Percepts(bytes) => match decode::<PerceptBundle>(&bytes) {
-                Ok(b) => {
-                    for p in b.percepts {
-                        if p.step == b.step && (p.cell as usize) < self.geom.cell_count() {
-                            self.take_percept(p);
-                        } else {
-                            self.counters.hostile += 1;
-                        }
-                    }
-                }
+                Ok(b) => self.take_each(b.percepts, |p| p.step == b.step, Self::take_percept),
                 Err(_) => self.counters.hostile += 1,
             },
             Event::Genes { cell, bytes } => match decode::<GeneBatch>(&bytes) {
@@ -491,15 +498,7 @@ impl Host {
                 _ => self.counters.hostile += 1,
             },
             Event::GeneBundle(bytes) => match decode::<GeneBundle>(&bytes) {
-                Ok(bundle) => {
-                    for b in bundle.batches {
-                        if b.step == bundle.step && (b.cell as usize) < self.geom.cell_count() {
-                            self.take_genes(b);
-                        } else {
-                            self.counters.hostile += 1;
-                        }
-                    }
-                }
+                Ok(b) => self.take_each(b.batches, |g| g.step == b.step, Self::take_genes),
                 Err(_) => self.counters.hostile += 1,
             },
             Event::Hostile => self.counters.hostile += 1,
@@ -522,6 +521,18 @@ impl Host {
                 _ => {}
             },
             Event::Stop => self.stop = true,
+        }
+    }
+
+    /// File each cell's item of a bundle that belongs to the bundle's step (`same_step`)
+    /// and names a cell of the arena; count the others as hostile.
+    fn take_each<T: Cell>(&mut self, items: Vec<T>, same_step: impl Fn(&T) -> bool, take: fn(&mut Self, T)) {
+        for item in items {
+            if same_step(&item) && (item.cell() as usize) < self.geom.cell_count() {
+                take(self, item);
+            } else {
+                self.counters.hostile += 1;
+            }
         }
     }
 

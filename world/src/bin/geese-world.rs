@@ -133,26 +133,10 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         bundled: false,
         per_cell: true,
     }));
-    let (h, s2, r2) = (genes.clone(), session.clone(), run.clone());
-    let _genes = session
-        .declare_subscriber(keys::all_gene_batches(&run))
-        .callback(move |s| {
-            let bytes = s.payload().to_bytes();
-            let out = h.lock().unwrap_or_else(|e| e.into_inner()).on_batch(s.key_expr().as_str(), &bytes);
-            out.publish(&s2, &r2);
-        })
-        .await
-        .map_err(zerr)?;
-    let (h, s2, r2) = (genes.clone(), session.clone(), run.clone());
-    let _gene_bundles = session
-        .declare_subscriber(keys::all_agents_genes(&run))
-        .callback(move |s| {
-            let bytes = s.payload().to_bytes();
-            let out = h.lock().unwrap_or_else(|e| e.into_inner()).on_bundle(s.key_expr().as_str(), &bytes);
-            out.publish(&s2, &r2);
-        })
-        .await
-        .map_err(zerr)?;
+    // Per-cell batches (processes of earlier versions, tests) and bundles.
+    let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, &run, GeneHub::on_batch).await?;
+    let _gene_bundles =
+        gene_subscriber(&session, keys::all_agents_genes(&run), &genes, &run, GeneHub::on_bundle).await?;
     let t = tx.clone();
     let _ctl = session
         .declare_subscriber(keys::all_ctl(&run))
@@ -341,6 +325,27 @@ impl Gather {
         }
         self.pending == 0
     }
+}
+
+/// Files what arrives on `key` into the hub with `file` and publishes what that releases
+/// (in the subscriber callback, like [`Gather`]).
+async fn gene_subscriber(
+    session: &Session,
+    key: String,
+    hub: &Arc<Mutex<GeneHub>>,
+    run: &str,
+    file: fn(&mut GeneHub, &str, &[u8]) -> Released,
+) -> Result<zenoh::pubsub::Subscriber<()>> {
+    let (h, s2, r2) = (hub.clone(), session.clone(), run.to_owned());
+    session
+        .declare_subscriber(key)
+        .callback(move |s| {
+            let bytes = s.payload().to_bytes();
+            let out = file(&mut h.lock().unwrap_or_else(|e| e.into_inner()), s.key_expr().as_str(), &bytes);
+            out.publish(&s2, &r2);
+        })
+        .await
+        .map_err(zerr)
 }
 
 /// Per-cell gene aggregation (DESIGN.md §2 step 2). Agent processes publish their
