@@ -134,9 +134,10 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         per_cell: true,
     }));
     // Per-cell batches (processes of earlier versions, tests) and bundles.
-    let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, &run, GeneHub::on_batch).await?;
+    let publish = spawn_publisher(&session, &run);
+    let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, &publish, GeneHub::on_batch).await?;
     let _gene_bundles =
-        gene_subscriber(&session, keys::all_agents_genes(&run), &genes, &run, GeneHub::on_bundle).await?;
+        gene_subscriber(&session, keys::all_agents_genes(&run), &genes, &publish, GeneHub::on_bundle).await?;
     let t = tx.clone();
     let _ctl = session
         .declare_subscriber(keys::all_ctl(&run))
@@ -171,6 +172,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
     eprintln!("geese-world: run {run} listening on {}", locators.join(", "));
 
     let mut server = Server::new(&session, spec, world, info, gather, gathered, genes);
+    server.publish = Some(publish);
     let outcome = server.run(&mut rx).await;
     // Whatever happened, say so and let everyone go.
     let (steps, completed) = match &outcome {
@@ -327,22 +329,22 @@ impl Gather {
     }
 }
 
-/// Files what arrives on `key` into the hub with `file` and publishes what that releases
-/// (in the subscriber callback, like [`Gather`]).
+/// Files what arrives on `key` into the hub with `file` (in the subscriber callback,
+/// like [`Gather`]) and hands what that releases to the publisher.
 async fn gene_subscriber(
     session: &Session,
     key: String,
     hub: &Arc<Mutex<GeneHub>>,
-    run: &str,
+    publish: &UnboundedSender<Released>,
     file: fn(&mut GeneHub, &str, &[u8]) -> Released,
 ) -> Result<zenoh::pubsub::Subscriber<()>> {
-    let (h, s2, r2) = (hub.clone(), session.clone(), run.to_owned());
+    let (h, p) = (hub.clone(), publish.clone());
     session
         .declare_subscriber(key)
         .callback(move |s| {
             let bytes = s.payload().to_bytes();
             let out = file(&mut h.lock().unwrap_or_else(|e| e.into_inner()), s.key_expr().as_str(), &bytes);
-            out.publish(&s2, &r2);
+            let _ = p.send(out);
         })
         .await
         .map_err(zerr)
@@ -374,16 +376,24 @@ struct Released {
     bundle: Option<Vec<u8>>,
 }
 
-impl Released {
-    /// Publish everything (from a subscriber callback: synchronous puts).
-    fn publish(self, session: &Session, run: &str) {
-        for (key, bytes) in self.cells {
-            let _ = session.put(key, bytes).congestion_control(CongestionControl::Block).wait();
+/// Publishes what the hub releases, in order, from a task of its own. Zenoh callbacks
+/// must not wait: a put that blocks (congestion control) inside the callback that
+/// receives gene batches stalled the thread receiving every process's messages, and the
+/// world then missed every intent (seen in the killed-agents test, after restarts).
+fn spawn_publisher(session: &Session, run: &str) -> UnboundedSender<Released> {
+    let (tx, mut rx) = unbounded_channel::<Released>();
+    let (session, run) = (session.clone(), run.to_owned());
+    tokio::spawn(async move {
+        while let Some(r) = rx.recv().await {
+            for (key, bytes) in r.cells {
+                let _ = zenoh_bus::put(&session, &key, bytes).await;
+            }
+            if let Some(bytes) = r.bundle {
+                let _ = zenoh_bus::put(&session, &keys::every_cell_genes(&run), bytes).await;
+            }
         }
-        if let Some(bytes) = self.bundle {
-            let _ = session.put(keys::every_cell_genes(run), bytes).congestion_control(CongestionControl::Block).wait();
-        }
-    }
+    });
+    tx
 }
 
 struct CellAgg {
@@ -534,6 +544,8 @@ struct Server<'a> {
     hosts: BTreeMap<AgentRange, u32>,
     /// Present agent processes that read cells one topic per cell (tokens per range).
     narrow: BTreeMap<AgentRange, u32>,
+    /// Where gene aggregates released by departures go out ([`spawn_publisher`]).
+    publish: Option<UnboundedSender<Released>>,
     orchestrator: bool,
     /// Agents whose process came (back) since the last step: revive them.
     revive: Vec<u32>,
@@ -574,6 +586,7 @@ impl<'a> Server<'a> {
             n,
             hosts: BTreeMap::new(),
             narrow: BTreeMap::new(),
+            publish: None,
             orchestrator: false,
             revive: Vec::new(),
             scheduled: Vec::new(),
@@ -804,7 +817,9 @@ impl<'a> Server<'a> {
                             }
                         }
                         let ready = self.genes.lock().unwrap_or_else(|e| e.into_inner()).forget(agents);
-                        ready.publish(self.session, &self.run);
+                        if let Some(p) = &self.publish {
+                            let _ = p.send(ready);
+                        }
                         // Its agents stop here: bodies idle, carried items dropped.
                         for id in agents.ids().filter(|&id| (id as usize) < self.n) {
                             if !self.hosts.keys().any(|r| r.contains(id)) {
