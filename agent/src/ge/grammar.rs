@@ -24,7 +24,7 @@ use std::collections::HashMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use super::ceiling::Ceilings;
+use super::ceiling::{Bound, Ceilings};
 use super::compiled::Compiled;
 
 /// One symbol of an alternative: an index into [`Grammar::terminal`] or into the rules.
@@ -390,12 +390,17 @@ impl Grammar {
     /// The highest diversity D a valid individual can score under the depth limit
     /// `max_tree_depth` (0 = none), when the grammar allows finding it (`ge::ceiling`).
     pub fn d_ceiling(&self, max_tree_depth: usize) -> Option<f64> {
-        self.ceilings.get(&self.compiled, self.start(), max_tree_depth).d
+        self.d_bound(max_tree_depth).d
     }
     /// Whether an individual can map valid yet deeper than `max_tree_depth` (only its
     /// very last symbol can be); `true` when unknown.
+    #[cfg(test)]
     pub(crate) fn deep_last_possible(&self, max_tree_depth: usize) -> bool {
-        self.ceilings.get(&self.compiled, self.start(), max_tree_depth).deep_last
+        self.d_bound(max_tree_depth).deep_last
+    }
+    /// Both of the above from one look-up (a genetic step needs both).
+    pub(crate) fn d_bound(&self, max_tree_depth: usize) -> Bound {
+        self.ceilings.get(&self.compiled, self.start(), max_tree_depth)
     }
     /// Terminal string by id. Panics on an id not produced by this grammar.
     pub fn terminal(&self, id: u32) -> &str {

@@ -320,6 +320,16 @@ struct Crossed {
     taped: Option<(f64, Option<Mark>)>,
 }
 
+/// The codons a child's mutations range over (§5.6): its used codons when its mapping
+/// is valid, its whole genome otherwise.
+fn mutation_span(st: &MapStats, len: usize) -> usize {
+    if st.valid {
+        len.min(st.used_codons)
+    } else {
+        len
+    }
+}
+
 fn too_deep(st: &MapStats, max_tree_depth: usize) -> bool {
     st.valid && max_tree_depth != 0 && st.depth > max_tree_depth
 }
@@ -502,7 +512,7 @@ fn map_crossed<R: Rng + ?Sized>(
             next = gaps.next_from(rng, i + 1);
             alts > 1 && fast_mod(codon, magic, alts) != fast_mod(new, magic, alts)
         });
-    let eff = if m.stats.valid { genome.len().min(m.stats.used_codons) } else { genome.len() };
+    let eff = mutation_span(&m.stats, genome.len());
     while next < eff {
         mutations.push((next as u32, rng.random_range(0..=codon_size)));
         next = gaps.next_from(rng, next + 1);
@@ -525,7 +535,7 @@ fn mutate_and_score<R: Rng + ?Sized>(
     let Env { grammar, params, gaps, .. } = *env;
     let Crossed { kid, stats: before, taped } = child;
     let genome = &mut arena[kid.start..kid.start + kid.len];
-    let eff = if before.valid { kid.len.min(before.used_codons) } else { kid.len };
+    let eff = mutation_span(&before, kid.len);
     let (mut st, mut fitness) = match taped {
         Some((d, mark)) => {
             for &(i, new) in drawn {
@@ -592,12 +602,13 @@ fn step<R: Rng + ?Sized>(
     // strictly more. Offspring cannot win at all when the elite already has the ceiling,
     // or when the population keeps no offspring.
     let elites = params.elite_size.min(pool.len());
-    let ceiling = if *every_offspring { None } else { grammar.d_ceiling(params.max_tree_depth) };
+    let bound = grammar.d_bound(params.max_tree_depth);
+    let ceiling = if *every_offspring { None } else { bound.d };
     let settled = |f: f64| ceiling.is_some_and(|c| f >= c);
     let offspring_can_win = elites < params.population_size && !(elites > 0 && settled(pool[0].fitness));
     // Whether a child can map valid but too deep, which discards its whole pair; if
     // not, a pair's second child is only made when the first did not settle the winner.
-    let deep_possible = grammar.deep_last_possible(params.max_tree_depth);
+    let deep_possible = bound.deep_last;
     let env = Env { grammar, compiled, start_rule, limits, params, gaps: Bernoulli::new(params.mutation_prob), taped };
 
     // 2. Variable one-point crossover until enough offspring exist, drawn from the
