@@ -105,17 +105,6 @@ pub fn cell_genes_from(run: &str, cx: i32, cy: i32, from: AgentRange) -> String 
     format!("geese/{run}/cell/{cx}/{cy}/genes/{from}")
 }
 
-/// Percepts of every cell (the subscription of a process hosting many agents).
-pub fn all_percepts(run: &str) -> String {
-    format!("geese/{run}/cell/*/*/percept")
-}
-
-/// The world's gene aggregates of every cell (the subscription of a process hosting
-/// many agents).
-pub fn all_cell_genes(run: &str) -> String {
-    format!("geese/{run}/cell/*/*/genes")
-}
-
 /// Every agent process's gene batches in every cell (the world's subscription).
 pub fn all_gene_batches(run: &str) -> String {
     format!("geese/{run}/cell/*/*/genes/*")

@@ -132,12 +132,11 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         sent: Vec::new(),
         bundled: false,
         per_cell: true,
+        publish: spawn_publisher(&session, &run),
     }));
     // Per-cell batches (processes of earlier versions, tests) and bundles.
-    let publish = spawn_publisher(&session, &run);
-    let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, &publish, GeneHub::on_batch).await?;
-    let _gene_bundles =
-        gene_subscriber(&session, keys::all_agents_genes(&run), &genes, &publish, GeneHub::on_bundle).await?;
+    let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, GeneHub::on_batch).await?;
+    let _gene_bundles = gene_subscriber(&session, keys::all_agents_genes(&run), &genes, GeneHub::on_bundle).await?;
     let t = tx.clone();
     let _ctl = session
         .declare_subscriber(keys::all_ctl(&run))
@@ -172,7 +171,6 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
     eprintln!("geese-world: run {run} listening on {}", locators.join(", "));
 
     let mut server = Server::new(&session, spec, world, info, gather, gathered, genes);
-    server.publish = Some(publish);
     let outcome = server.run(&mut rx).await;
     // Whatever happened, say so and let everyone go.
     let (steps, completed) = match &outcome {
@@ -335,16 +333,16 @@ async fn gene_subscriber(
     session: &Session,
     key: String,
     hub: &Arc<Mutex<GeneHub>>,
-    publish: &UnboundedSender<Released>,
     file: fn(&mut GeneHub, &str, &[u8]) -> Released,
 ) -> Result<zenoh::pubsub::Subscriber<()>> {
-    let (h, p) = (hub.clone(), publish.clone());
+    let h = hub.clone();
     session
         .declare_subscriber(key)
         .callback(move |s| {
             let bytes = s.payload().to_bytes();
-            let out = file(&mut h.lock().unwrap_or_else(|e| e.into_inner()), s.key_expr().as_str(), &bytes);
-            let _ = p.send(out);
+            let mut hub = h.lock().unwrap_or_else(|e| e.into_inner());
+            let out = file(&mut hub, s.key_expr().as_str(), &bytes);
+            hub.release(out);
         })
         .await
         .map_err(zerr)
@@ -366,6 +364,8 @@ struct GeneHub {
     /// Whether to publish each cell's aggregate on its own topic (some process reads
     /// cells one by one).
     per_cell: bool,
+    /// Where what the hub releases goes out ([`spawn_publisher`]).
+    publish: UnboundedSender<Released>,
 }
 
 /// What filing gene batches releases: per-cell aggregates (key, bytes), and the bundle
@@ -411,6 +411,13 @@ impl GeneHub {
         self.bundled = false;
         self.cells =
             cells.into_iter().map(|(c, expect)| (c, CellAgg { expect, got: Vec::new(), sent: false })).collect();
+    }
+
+    /// Hand what filing released to the publisher.
+    fn release(&self, r: Released) {
+        if !r.cells.is_empty() || r.bundle.is_some() {
+            let _ = self.publish.send(r);
+        }
     }
 
     /// File one batch published on its cell's key.
@@ -544,8 +551,6 @@ struct Server<'a> {
     hosts: BTreeMap<AgentRange, u32>,
     /// Present agent processes that read cells one topic per cell (tokens per range).
     narrow: BTreeMap<AgentRange, u32>,
-    /// Where gene aggregates released by departures go out ([`spawn_publisher`]).
-    publish: Option<UnboundedSender<Released>>,
     orchestrator: bool,
     /// Agents whose process came (back) since the last step: revive them.
     revive: Vec<u32>,
@@ -586,7 +591,6 @@ impl<'a> Server<'a> {
             n,
             hosts: BTreeMap::new(),
             narrow: BTreeMap::new(),
-            publish: None,
             orchestrator: false,
             revive: Vec::new(),
             scheduled: Vec::new(),
@@ -816,10 +820,10 @@ impl<'a> Server<'a> {
                                 self.hosts.remove(&agents);
                             }
                         }
-                        let ready = self.genes.lock().unwrap_or_else(|e| e.into_inner()).forget(agents);
-                        if let Some(p) = &self.publish {
-                            let _ = p.send(ready);
-                        }
+                        let mut hub = self.genes.lock().unwrap_or_else(|e| e.into_inner());
+                        let ready = hub.forget(agents);
+                        hub.release(ready);
+                        drop(hub);
                         // Its agents stop here: bodies idle, carried items dropped.
                         for id in agents.ids().filter(|&id| (id as usize) < self.n) {
                             if !self.hosts.keys().any(|r| r.contains(id)) {
