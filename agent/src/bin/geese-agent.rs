@@ -299,6 +299,8 @@ struct Host {
     counters: HostCounters,
     stop: bool,
     bare_tick: Option<u64>,
+    /// A tick came: check that the cells of own agents are subscribed.
+    tick_seen: bool,
 }
 
 impl Host {
@@ -353,6 +355,7 @@ impl Host {
             counters: HostCounters::default(),
             stop: false,
             bare_tick: None,
+            tick_seen: false,
         })
     }
 
@@ -440,6 +443,13 @@ impl Host {
                 self.bare_step(t).await?;
                 continue;
             }
+            if std::mem::take(&mut self.tick_seen) && !self.wide && !self.bare() {
+                // Wherever the world now says our agents are, listen there.
+                let cells: Vec<u32> = self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect();
+                for c in cells {
+                    self.want(c, self.done + 1).await?;
+                }
+            }
             if self.collecting > self.done {
                 let expired = self.collect_deadline.is_some_and(|d| tokio::time::Instant::now() >= d);
                 if self.all_found() || expired {
@@ -465,6 +475,19 @@ impl Host {
 
     /// File an event.
     fn absorb(&mut self, ev: Event) {
+        if tracing::enabled!(target: "geese::flow", tracing::Level::TRACE) {
+            let what = match &ev {
+                Event::Tick(_) => "tick",
+                Event::Percept { .. } => "percept",
+                Event::Genes { .. } => "genes",
+                Event::Percepts(_) => "percepts",
+                Event::GeneBundle(_) => "gene bundle",
+                Event::Hostile => "hostile",
+                Event::Presence { .. } => "presence",
+                Event::Stop => "stop",
+            };
+            tracing::trace!(target: "geese::flow", "agents {}: {what} (done {}, collecting {})", self.range, self.done, self.collecting);
+        }
         match ev {
             Event::Tick(bytes) => match decode::<Tick>(&bytes) {
                 Ok(t) if self.bare() => {
@@ -482,6 +505,7 @@ impl Host {
                             self.last_cell[k] = c;
                         }
                     }
+                    self.tick_seen = true;
                 }
                 _ => self.counters.hostile += 1,
             },
@@ -542,6 +566,7 @@ impl Host {
             return; // stale
         }
         if p.step > self.collecting {
+            tracing::trace!(target: "geese::flow", "agents {}: collecting step {}", self.range, p.step);
             self.collecting = p.step;
             self.percepts.clear();
             self.found.clear();
@@ -645,6 +670,8 @@ impl Host {
             };
             if let Some(g) = self.learners[k].begin_step(percept) {
                 local.entry(c).or_default().push(g);
+            } else {
+                tracing::trace!(target: "geese::flow", "agents {}: step {t}: agent {id} offers no gene", self.range);
             }
             active.push((id, c));
         }
@@ -712,6 +739,7 @@ impl Host {
                     .filter(|(&c, _)| !self.heard.contains(&(t, c)))
                     .map(|(_, mates)| mates.len() as u32)
                     .sum::<u32>();
+                tracing::trace!(target: "geese::flow", "agents {}: step {t}: genes late, waited for {wait_for:?}", self.range);
                 self.counters.genes_late += late;
             }
         }
@@ -737,8 +765,10 @@ impl Host {
         }
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
-            let mut next: Vec<u32> =
-                own.iter().map(|&id| self.last_cell[self.idx(id)]).filter(|&c| c != NO_CELL).collect();
+            // Every own agent's cell, live or not: a restarted agent's body is revived
+            // where it stands, and the percept that shows it live may come before the
+            // tick that says so (dropping the cell then left the agent deaf for good).
+            let mut next: Vec<u32> = self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect();
             for i in &intents {
                 for op in &i.ops {
                     if let Op::Move { to, .. } = op {
@@ -754,6 +784,7 @@ impl Host {
             self.subs.retain(|_, s| s.wanted + KEEP_STEPS > t);
         }
         let batch = IntentBatch { step: t, intents, idle, counters: std::mem::take(&mut self.counters) };
+        tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
         self.publish_intents(batch).await?;
         self.done = t;
         self.collect_deadline = None;

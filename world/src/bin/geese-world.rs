@@ -292,6 +292,7 @@ impl Gather {
             }
         };
         let step = self.step;
+        tracing::trace!(target: "geese::flow", "intents of step {} from {from} (awaiting {step})", batch.step);
         if batch.step != step || step == 0 {
             // A straggler of an earlier step (after its deadline), or nonsense.
             if batch.step > step {
@@ -719,6 +720,7 @@ impl<'a> Server<'a> {
                 self.announced = Some(live);
             }
             let percepts = self.world.percepts();
+            tracing::trace!(target: "geese::flow", "step {step}: {} percepts (per cell: {})", percepts.len(), !self.narrow.is_empty());
             // Per-cell topics only while some process reads them.
             if !self.narrow.is_empty() {
                 for p in &percepts {
@@ -746,8 +748,21 @@ impl<'a> Server<'a> {
                     None => bail!("event channel closed"),
                 },
                 _ = tokio::time::sleep_until(deadline) => {
-                    self.counters.intents_late = pending as u32;
-                    tracing::warn!("step {step}: {pending} intents missing at the deadline");
+                    // Read again: answers may have come in since the loop last looked.
+                    let pending = self.gather().pending;
+                    if pending > 0 {
+                        self.counters.intents_late = pending as u32;
+                        tracing::warn!("step {step}: {pending} intents missing at the deadline");
+                        if tracing::enabled!(target: "geese::flow", tracing::Level::TRACE) {
+                            let h = self.genes.lock().unwrap_or_else(|e| e.into_inner());
+                            for (c, a) in &h.cells {
+                                if !a.sent {
+                                    let got: Vec<AgentRange> = a.got.iter().map(|(r, _)| *r).collect();
+                                    tracing::trace!(target: "geese::flow", "step {step}: cell {c} expects {:?}, got {:?}", a.expect, got);
+                                }
+                            }
+                        }
+                    }
                     break;
                 }
             }
