@@ -5,7 +5,7 @@
 use serde::{de::DeserializeOwned, Serialize};
 
 /// Bumped whenever a message type changes shape.
-pub const WIRE_VERSION: u8 = 4;
+pub const WIRE_VERSION: u8 = 5;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
@@ -50,5 +50,26 @@ mod tests {
         assert!(matches!(decode::<GeneMsg>(&bad), Err(CodecError::Version { got: 99, .. })));
         assert_eq!(decode::<GeneMsg>(&[]), Err(CodecError::Empty));
         assert!(matches!(decode::<GeneMsg>(&b[..3]), Err(CodecError::Decode(_))));
+    }
+
+    #[test]
+    fn genomes_travel_as_two_or_four_byte_codons_and_malformed_ones_are_rejected() {
+        let mapping = GeneMapping::default();
+        let gene = |genome: Vec<u32>| GeneMsg { step: 1, from: 2, genome: genome.into(), fitness: 0.0, mapping };
+        let narrow = encode(&gene(vec![7; 100])).unwrap();
+        let wide = encode(&gene(vec![70_000; 100])).unwrap();
+        assert!(wide.len() > narrow.len() + 150, "{} vs {}", wide.len(), narrow.len());
+        for g in [gene(vec![]), gene(vec![0, 65_535]), gene(vec![65_536, 1, u32::MAX])] {
+            assert_eq!(decode::<GeneMsg>(&encode(&g).unwrap()).unwrap(), g);
+        }
+        // Step 1, from 2, then the genome's length and width byte: a width of 3, or an
+        // odd number of bytes at width 2, does not decode.
+        let b = encode(&gene(vec![1, 2])).unwrap();
+        assert_eq!(&b[1..5], &[1, 2, 5, 2]);
+        for (at, byte) in [(4, 3u8), (3, 4)] {
+            let mut bad = b.clone();
+            bad[at] = byte;
+            assert!(matches!(decode::<GeneMsg>(&bad), Err(CodecError::Decode(_))), "byte {at} = {byte}");
+        }
     }
 }
