@@ -32,7 +32,7 @@ pub struct BenchNetArgs {
     /// Directory of geese-world and geese-agent [default: next to geese].
     #[arg(long)]
     pub bin_dir: Option<PathBuf>,
-    /// How agent processes subscribe to cells: auto, cells or all.
+    /// How agent processes read cells: auto, cells or all; a comma-separated list is cycled over the processes.
     #[arg(long)]
     pub subscribe: Option<String>,
     #[command(flatten)]

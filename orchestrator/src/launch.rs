@@ -80,7 +80,8 @@ pub struct NetOptions {
     pub run: Option<String>,
     /// Bare lock-step benchmark: no simulation, ticks out and empty replies back.
     pub bare: bool,
-    /// `--subscribe` of the agent processes (`auto`, `cells`, `all`).
+    /// `--subscribe` of the agent processes (`auto`, `cells`, `all`); a comma-separated
+    /// list is cycled over the processes.
     pub subscribe: Option<String>,
     /// Failure injection: kill agent processes after given steps.
     pub kill: Vec<KillPlan>,
@@ -136,7 +137,7 @@ pub struct Swarm {
 }
 
 impl Swarm {
-    fn agent_command(&self, first: u32, count: u32) -> Command {
+    fn agent_command(&self, i: usize, first: u32, count: u32) -> Command {
         let mut c = Command::new(self.bin_dir.join("geese-agent"));
         c.args(self.client.to_args()).args([
             "--run",
@@ -147,7 +148,8 @@ impl Swarm {
             &count.to_string(),
         ]);
         if let Some(s) = &self.subscribe {
-            c.args(["--subscribe", s]);
+            let modes: Vec<&str> = s.split(',').collect();
+            c.args(["--subscribe", modes[i % modes.len()]]);
         }
         c.stdin(Stdio::null()).stdout(Stdio::null());
         c.stderr(if self.quiet { Stdio::null() } else { Stdio::inherit() });
@@ -157,7 +159,7 @@ impl Swarm {
 
     fn spawn_agent(&mut self, i: usize) -> Result<(), LaunchError> {
         let (first, count) = (self.agents[i].first, self.agents[i].count);
-        let child = self.agent_command(first, count).spawn().map_err(io("cannot start geese-agent"))?;
+        let child = self.agent_command(i, first, count).spawn().map_err(io("cannot start geese-agent"))?;
         self.spawned.extend(child.id());
         let a = &mut self.agents[i];
         a.pid = child.id();
@@ -715,7 +717,8 @@ pub struct NetArgs {
     /// Directory of geese-world and geese-agent [default: next to geese].
     #[arg(long)]
     pub bin_dir: Option<PathBuf>,
-    /// How agent processes subscribe to cells: auto, cells or all.
+    /// How agent processes read cells: auto, cells or all; a comma-separated list is
+    /// cycled over the processes (e.g. `all,cells`: a mixed swarm).
     #[arg(long)]
     pub subscribe: Option<String>,
     #[command(flatten)]
@@ -748,8 +751,8 @@ impl NetArgs {
             kill.push(KillPlan { at, count });
         }
         if let Some(s) = &self.subscribe {
-            if !["auto", "cells", "all"].contains(&s.as_str()) {
-                anyhow::bail!("--subscribe {s:?}: expected auto, cells or all");
+            if !s.split(',').all(|m| ["auto", "cells", "all"].contains(&m)) {
+                anyhow::bail!("--subscribe {s:?}: expected auto, cells or all, or a comma-separated list of them");
             }
         }
         let mut deadlines = Deadlines::default();

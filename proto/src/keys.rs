@@ -110,17 +110,16 @@ pub fn all_gene_batches(run: &str) -> String {
     format!("geese/{run}/cell/*/*/genes/*")
 }
 
-/// The percepts of every occupied cell of a step as one [`crate::net::PerceptBundle`]
-/// (the subscription of a process hosting many agents: one delivery per step instead of
-/// one per cell).
-pub fn every_percept(run: &str) -> String {
-    format!("geese/{run}/cells/percepts")
+/// The percepts the world hands the hosting process speaking for `to`
+/// ([`crate::net::HostPercepts`]).
+pub fn host_percepts(run: &str, to: AgentRange) -> String {
+    format!("geese/{run}/agent/{to}/in/percepts")
 }
 
-/// The world's gene aggregates of every shared cell of a step as one
-/// [`crate::net::GeneBundle`] (the subscription of a process hosting many agents).
-pub fn every_cell_genes(run: &str) -> String {
-    format!("geese/{run}/cells/genes")
+/// The genes the world hands the hosting process speaking for `to`
+/// ([`crate::net::HostGenes`]).
+pub fn host_genes(run: &str, to: AgentRange) -> String {
+    format!("geese/{run}/agent/{to}/in/genes")
 }
 
 /// The gene batches of every shared cell of the agent process speaking for `from`, as
@@ -196,11 +195,17 @@ pub enum Parsed {
     Action {
         from: AgentRange,
     },
-    /// [`every_percept`].
-    PerceptBundle,
-    /// [`every_cell_genes`] (`from` = `None`) or [`agents_genes`].
+    /// [`host_percepts`].
+    HostPercepts {
+        to: AgentRange,
+    },
+    /// [`host_genes`].
+    HostGenes {
+        to: AgentRange,
+    },
+    /// [`agents_genes`].
     GeneBundle {
-        from: Option<AgentRange>,
+        from: AgentRange,
     },
     WorldPresence,
     OrchestratorPresence,
@@ -245,11 +250,17 @@ pub fn parse(run: &str, key: &str) -> Parsed {
             None => Parsed::Other,
         },
         ["agent", from, "genes"] => match AgentRange::parse(from) {
-            Some(from) => Parsed::GeneBundle { from: Some(from) },
+            Some(from) => Parsed::GeneBundle { from },
             None => Parsed::Other,
         },
-        ["cells", "percepts"] => Parsed::PerceptBundle,
-        ["cells", "genes"] => Parsed::GeneBundle { from: None },
+        ["agent", to, "in", "percepts"] => match AgentRange::parse(to) {
+            Some(to) => Parsed::HostPercepts { to },
+            None => Parsed::Other,
+        },
+        ["agent", to, "in", "genes"] => match AgentRange::parse(to) {
+            Some(to) => Parsed::HostGenes { to },
+            None => Parsed::Other,
+        },
         ["presence", "world"] => Parsed::WorldPresence,
         ["presence", "orchestrator"] => Parsed::OrchestratorPresence,
         ["presence", "agents", a] => match AgentRange::parse(a) {
@@ -296,9 +307,10 @@ mod tests {
         assert_eq!(parse("r", &super::agents_presence("r", one)), Parsed::AgentsPresence { agents: one });
         assert_eq!(parse("r", &super::world_presence("r")), Parsed::WorldPresence);
         assert_eq!(parse("r", &super::cells_presence("r", many)), Parsed::CellsPresence { agents: many });
-        assert_eq!(parse("r", &super::every_percept("r")), Parsed::PerceptBundle);
-        assert_eq!(parse("r", &super::every_cell_genes("r")), Parsed::GeneBundle { from: None });
-        assert_eq!(parse("r", &super::agents_genes("r", many)), Parsed::GeneBundle { from: Some(many) });
+        assert_eq!(parse("r", &super::host_percepts("r", many)), Parsed::HostPercepts { to: many });
+        assert_eq!(parse("r", &super::host_genes("r", one)), Parsed::HostGenes { to: one });
+        assert_eq!(parse("r", &super::agents_genes("r", many)), Parsed::GeneBundle { from: many });
+        assert_eq!(parse("r", "geese/r/agent/1/in/other"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/agent/x/genes"), Parsed::Other);
         assert_eq!(parse("r", "geese/other/agent/1/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/agent/x/action"), Parsed::Other);

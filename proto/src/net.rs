@@ -20,11 +20,13 @@
 //!   `cell/<cx>/<cy>/genes` as soon as every process there has spoken: each process then
 //!   receives one message per shared cell instead of one per cell-mate (2N deliveries
 //!   for N processes in a cell rather than N²).
-//! - [`GeneBundle`], [`PerceptBundle`]: the same messages several cells at a time. An
-//!   agent process sends its batches of all shared cells as one bundle; the world files
-//!   each batch as above, and besides the per-cell aggregates publishes one bundle of
-//!   all cells' aggregates, and one bundle of all cells' percepts, which a process
-//!   hosting many agents (`--subscribe all`) reads instead of a message per cell.
+//! - [`GeneBundle`]: an agent process's batches of all its shared cells in one message;
+//!   the world files each batch as above. A process hosting many agents
+//!   (`--subscribe all`) reads no cell topic: the world sends it, on keys of its own,
+//!   [`HostPercepts`] (the percepts of its agents' cells) and [`HostGenes`] (the other
+//!   processes' batches of its shared cells, as soon as those cells are complete), each
+//!   cell encoded once by the world and copied into every process's message as a
+//!   [`Blob`].
 //! - [`IntentBatch`]: the intents of one agent process for one step, with the ids of
 //!   agents that idle on purpose and the process's drop counters.
 //! - [`NetReport`]: the world's step report plus the network counters.
@@ -127,19 +129,69 @@ pub struct GeneBatch {
     pub absent: Vec<AgentId>,
 }
 
-/// The percepts of every occupied cell of one step in one message, for processes that
-/// host many agents and read every cell anyway: one delivery per step instead of one
-/// per cell (with 1,000 agents in 10 processes the per-message cost of Zenoh, not the
-/// bytes, bounded the step rate).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct PerceptBundle {
-    pub step: u64,
-    pub percepts: Vec<crate::message::Percept>,
+/// The postcard encoding (no envelope: the outer message carries the version) of one
+/// message inside another. The world encodes each cell's percept, and each process's
+/// gene batch of a cell, once, and hands every hosting process the ones it needs by
+/// copying bytes; a malformed blob is counted as hostile by whoever opens it.
+#[derive(Clone, Debug, PartialEq, Eq, Default)]
+pub struct Blob(pub Vec<u8>);
+
+impl Blob {
+    pub fn of<T: Serialize>(msg: &T) -> Result<Blob, crate::CodecError> {
+        postcard::to_stdvec(msg).map(Blob).map_err(|e| crate::CodecError::Encode(e.to_string()))
+    }
+
+    pub fn open<T: serde::de::DeserializeOwned>(&self) -> Result<T, crate::CodecError> {
+        postcard::from_bytes(&self.0).map_err(|e| crate::CodecError::Decode(e.to_string()))
+    }
 }
 
-/// Several cells' [`GeneBatch`]es of one step in one message: an agent process's batches
-/// of every cell it shares (to the world, on `agent/<ids>/genes`), or the world's
-/// aggregates of every shared cell (on `cells/genes`, once every cell is complete).
+impl Serialize for Blob {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(&self.0)
+    }
+}
+
+impl<'de> Deserialize<'de> for Blob {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Blob, D::Error> {
+        struct Bytes;
+        impl serde::de::Visitor<'_> for Bytes {
+            type Value = Blob;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a byte string")
+            }
+            fn visit_bytes<E: serde::de::Error>(self, b: &[u8]) -> Result<Blob, E> {
+                Ok(Blob(b.to_vec()))
+            }
+        }
+        d.deserialize_bytes(Bytes)
+    }
+}
+
+/// What the world hands one agent process that hosts many agents, per step, on
+/// `agent/<ids>/in/percepts`: the percepts (each a [`Blob`] of a
+/// [`Percept`](crate::Percept)) of the cells its live agents are in, and of no other
+/// cell. With 1,000 agents in 10 processes, every process decoding every cell's
+/// percepts and genes was a large part of the distributed overhead.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HostPercepts {
+    pub step: u64,
+    pub percepts: Vec<Blob>,
+}
+
+/// What the world hands one hosting agent process on `agent/<ids>/in/genes` once every
+/// process sharing a cell with it has spoken (or left): the [`GeneBatch`]es (as
+/// [`Blob`]s) of the other processes in those cells, not its own. `cells` lists those
+/// cells, so that a cell whose other processes all left is known to be complete too.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HostGenes {
+    pub step: u64,
+    pub cells: Vec<u32>,
+    pub batches: Vec<Blob>,
+}
+
+/// An agent process's [`GeneBatch`]es of every cell it shares, for one step, in one
+/// message (to the world, on `agent/<ids>/genes`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct GeneBundle {
     pub step: u64,
@@ -251,5 +303,18 @@ mod tests {
         assert_eq!(decode::<IntentBatch>(&encode(&b).unwrap()).unwrap(), b);
         let r = ReportMsg::Done { steps: 5, completed: true, requested: false };
         assert_eq!(decode::<ReportMsg>(&encode(&r).unwrap()).unwrap(), r);
+    }
+
+    #[test]
+    fn blobs_carry_messages_and_bad_ones_fail_to_open() {
+        let batch = GeneBatch { step: 3, cell: 7, genes: vec![], absent: vec![4, 5] };
+        let h = HostGenes { step: 3, cells: vec![7], batches: vec![Blob::of(&batch).unwrap(), Blob(vec![0xff; 3])] };
+        let back = decode::<HostGenes>(&encode(&h).unwrap()).unwrap();
+        assert_eq!(back, h);
+        assert_eq!(back.batches[0].open::<GeneBatch>().unwrap(), batch);
+        assert!(back.batches[1].open::<GeneBatch>().is_err());
+        // A blob is a length and raw bytes on the wire, not a sequence of varints.
+        let big = Blob(vec![200; 1000]);
+        assert!(encode(&big).unwrap().len() <= 1000 + 3);
     }
 }

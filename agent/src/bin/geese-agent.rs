@@ -16,11 +16,13 @@
 //! of every cell its agents may be in next step (the current cell and the cells of their
 //! move destinations); Zenoh delivers a session's declarations before its later
 //! publications, and the world publishes the next percepts only after every intent, so
-//! those subscriptions are in place in time. A process hosting many agents reads all
-//! cells instead (`--subscribe all`, the default when it hosts at least a quarter as many
-//! agents as there are cells), from the world's two bundles of a step — every cell's
-//! percepts, every shared cell's genes — rather than a message per cell: with 1,000
-//! agents in 10 processes, Zenoh's cost per message bounded the step rate.
+//! those subscriptions are in place in time. A process hosting many agents reads no cell
+//! topic (`--subscribe all`, the default when it hosts at least a quarter as many agents
+//! as there are cells): the world sends it two messages a step on keys of its own — the
+//! percepts of its agents' cells ([`HostPercepts`]), and the other processes' genes in
+//! its shared cells once those cells are complete ([`HostGenes`]) — rather than a message
+//! per cell (with 1,000 agents in 10 processes, Zenoh's cost per message bounded the step
+//! rate) or every cell's (decoding all of them was most of the remaining overhead).
 //!
 //! The process learns everything else (configuration, grammar, seed, where its agents
 //! are) from the world's `ctl/info` queryable, so agents on another host need nothing
@@ -32,8 +34,8 @@ use geese_agent::ge::Grammar;
 use geese_agent::{GeneCache, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, GeneBatch, GeneBundle, HostCounters, IntentBatch, PerceptBundle, RunInfo, Tick, LOSS_SALT_PERCEPT,
-    NO_CELL,
+    loss_draw, GeneBatch, GeneBundle, HostCounters, HostGenes, HostPercepts, IntentBatch, RunInfo, Tick,
+    LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
@@ -53,7 +55,7 @@ enum SubscribeArg {
     Auto,
     /// Only the cells the process's agents are in or may move into.
     Cells,
-    /// Every cell's percepts and genes.
+    /// No cell topic: the world sends the process its cells' percepts and genes.
     All,
 }
 
@@ -96,10 +98,10 @@ enum Event {
         cell: u32,
         bytes: Vec<u8>,
     },
-    /// The percepts of every occupied cell ([`PerceptBundle`]).
+    /// The percepts of the cells of our agents ([`HostPercepts`]).
     Percepts(Vec<u8>),
-    /// The world's batches of every shared cell ([`GeneBundle`]).
-    GeneBundle(Vec<u8>),
+    /// The other processes' batches of our shared cells ([`HostGenes`]).
+    HostGenes(Vec<u8>),
     Hostile,
     Presence {
         alive: bool,
@@ -372,17 +374,22 @@ impl Host {
             return Ok(());
         }
         if self.wide {
-            // Every cell: the world's bundles, one message per step each.
-            for key in [keys::every_percept(&self.run), keys::every_cell_genes(&self.run)] {
+            // Our cells' percepts and genes, from the world, one message per step each.
+            for key in [keys::host_percepts(&self.run, self.range), keys::host_genes(&self.run, self.range)] {
                 let t = self.tx.clone();
                 let run = self.run.clone();
+                let range = self.range;
                 let sub = self
                     .session
                     .declare_subscriber(key)
                     .callback(move |s| {
                         let ev = match keys::parse(&run, s.key_expr().as_str()) {
-                            Parsed::PerceptBundle => Event::Percepts(s.payload().to_bytes().into_owned()),
-                            Parsed::GeneBundle { from: None } => Event::GeneBundle(s.payload().to_bytes().into_owned()),
+                            Parsed::HostPercepts { to } if to == range => {
+                                Event::Percepts(s.payload().to_bytes().into_owned())
+                            }
+                            Parsed::HostGenes { to } if to == range => {
+                                Event::HostGenes(s.payload().to_bytes().into_owned())
+                            }
                             _ => Event::Hostile,
                         };
                         let _ = t.send(ev);
@@ -481,7 +488,7 @@ impl Host {
                 Event::Percept { .. } => "percept",
                 Event::Genes { .. } => "genes",
                 Event::Percepts(_) => "percepts",
-                Event::GeneBundle(_) => "gene bundle",
+                Event::HostGenes(_) => "host genes",
                 Event::Hostile => "hostile",
                 Event::Presence { .. } => "presence",
                 Event::Stop => "stop",
@@ -513,16 +520,32 @@ impl Host {
                 Ok(p) if p.cell == cell => self.take_percept(p),
                 _ => self.counters.hostile += 1,
             },
-            Event::Percepts(bytes) => match decode::<PerceptBundle>(&bytes) {
-                Ok(b) => self.take_each(b.percepts, |p| p.step == b.step, Self::take_percept),
+            Event::Percepts(bytes) => match decode::<HostPercepts>(&bytes) {
+                Ok(b) => {
+                    let percepts = self.open_each(&b.percepts);
+                    self.take_each(percepts, |p| p.step == b.step, Self::take_percept);
+                }
                 Err(_) => self.counters.hostile += 1,
             },
             Event::Genes { cell, bytes } => match decode::<GeneBatch>(&bytes) {
                 Ok(b) if b.cell == cell => self.take_genes(b),
                 _ => self.counters.hostile += 1,
             },
-            Event::GeneBundle(bytes) => match decode::<GeneBundle>(&bytes) {
-                Ok(b) => self.take_each(b.batches, |g| g.step == b.step, Self::take_genes),
+            Event::HostGenes(bytes) => match decode::<HostGenes>(&bytes) {
+                Ok(b) => {
+                    // The cells listed are complete, whether or not a batch came with them.
+                    if b.step > self.done {
+                        for &c in &b.cells {
+                            if (c as usize) < self.geom.cell_count() {
+                                self.heard.insert((b.step, c));
+                            } else {
+                                self.counters.hostile += 1;
+                            }
+                        }
+                    }
+                    let batches = self.open_each(&b.batches);
+                    self.take_each(batches, |g| g.step == b.step && b.cells.contains(&g.cell), Self::take_genes);
+                }
                 Err(_) => self.counters.hostile += 1,
             },
             Event::Hostile => self.counters.hostile += 1,
@@ -546,6 +569,18 @@ impl Host {
             },
             Event::Stop => self.stop = true,
         }
+    }
+
+    /// Open the blobs of a message from the world; one that does not open is hostile.
+    fn open_each<T: serde::de::DeserializeOwned>(&mut self, blobs: &[geese_proto::net::Blob]) -> Vec<T> {
+        let mut out = Vec::with_capacity(blobs.len());
+        for b in blobs {
+            match b.open::<T>() {
+                Ok(v) => out.push(v),
+                Err(_) => self.counters.hostile += 1,
+            }
+        }
+        out
     }
 
     /// File each cell's item of a bundle that belongs to the bundle's step (`same_step`)
@@ -706,16 +741,26 @@ impl Host {
         // Which remote cell-mates each cell waits for: expected mates of another process
         // whose centre is in the cell (others publish elsewhere and count as lost).
         let mut wait_for: HashMap<u32, Vec<AgentId>> = HashMap::new();
+        // Per cell, once: the agents of other processes centred there (sorted).
+        let mut remote: HashMap<u32, Vec<AgentId>> = HashMap::new();
+        let (range, geom) = (self.range, self.geom);
         for &(id, c) in &active {
             let k = self.idx(id);
             let Some(p) = self.percepts.get(&c) else {
                 continue;
             };
+            let here = remote.entry(c).or_insert_with(|| {
+                let mut v: Vec<AgentId> = p
+                    .agents
+                    .iter()
+                    .filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c)
+                    .map(|a| a.id)
+                    .collect();
+                v.sort_unstable();
+                v
+            });
             for &m in self.learners[k].expected_mates() {
-                if self.range.contains(m) {
-                    continue;
-                }
-                if p.agents.iter().any(|a| a.id == m && self.geom.cell_of(a.pos) == c) {
+                if here.binary_search(&m).is_ok() {
                     wait_for.entry(c).or_default().push(m);
                 }
             }

@@ -14,8 +14,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, GeneBatch, IntentBatch, NetCounters, NetReport, NetRunSpec, PerceptBundle, ReportMsg, RunInfo, Tick,
-    LOSS_SALT_INTENT, NO_CELL,
+    loss_draw, Blob, GeneBatch, HostGenes, HostPercepts, IntentBatch, NetCounters, NetReport, NetRunSpec, ReportMsg,
+    RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
@@ -128,11 +128,10 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         geom: world.geometry(),
         step: 0,
         cells: HashMap::new(),
+        hosts: HashMap::new(),
         hostile: 0,
-        sent: Vec::new(),
-        bundled: false,
         per_cell: true,
-        publish: spawn_publisher(&session, &run),
+        publish: spawn_publisher(&session),
     }));
     // Per-cell batches (processes of earlier versions, tests) and bundles.
     let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, GeneHub::on_batch).await?;
@@ -350,18 +349,21 @@ async fn gene_subscriber(
 }
 
 /// Per-cell gene aggregation (DESIGN.md §2 step 2). Agent processes publish their
-/// batch of a shared cell on `cell/<cx>/<cy>/genes/<ids>`; once every process with an
-/// agent centred in the cell has spoken, the cell's genes go out as one batch on
-/// `cell/<cx>/<cy>/genes`. Runs in the subscriber callback, like [`Gather`].
+/// batches of the shared cells of a step as one bundle on `agent/<ids>/genes`; once
+/// every process with an agent centred in a cell has spoken (or left), the cell is
+/// complete. Then a process that reads cells one by one gets the cell's genes as one
+/// batch on `cell/<cx>/<cy>/genes`, and a hosting process, once all its shared cells
+/// are complete, gets the other processes' batches of those cells as one
+/// [`HostGenes`] on `agent/<ids>/in/genes`. Runs in the subscriber callback, like
+/// [`Gather`].
 struct GeneHub {
     run: String,
     geom: geese_proto::Geometry,
     step: u64,
     cells: HashMap<u32, CellAgg>,
+    /// Hosting processes not yet served this step, with their shared cells.
+    hosts: HashMap<AgentRange, Vec<u32>>,
     hostile: u32,
-    /// The aggregates sent so far this step, for the bundle of every cell.
-    sent: Vec<GeneBatch>,
-    bundled: bool,
     /// Whether to publish each cell's aggregate on its own topic (some process reads
     /// cells one by one).
     per_cell: bool,
@@ -369,28 +371,19 @@ struct GeneHub {
     publish: UnboundedSender<Released>,
 }
 
-/// What filing gene batches releases: per-cell aggregates (key, bytes), and the bundle
-/// of every cell once the last one is complete.
-#[derive(Default)]
-struct Released {
-    cells: Vec<(String, Vec<u8>)>,
-    bundle: Option<Vec<u8>>,
-}
+/// What filing gene batches releases: messages (key, bytes) to publish, in order.
+type Released = Vec<(String, Vec<u8>)>;
 
 /// Publishes what the hub releases, in order, from a task of its own. Zenoh callbacks
 /// must not wait: a put that blocks (congestion control) inside the callback that
-/// receives gene batches stalled the thread receiving every process's messages, and the
-/// world then missed every intent (seen in the killed-agents test, after restarts).
-fn spawn_publisher(session: &Session, run: &str) -> UnboundedSender<Released> {
+/// receives gene batches would stall the thread receiving every process's messages.
+fn spawn_publisher(session: &Session) -> UnboundedSender<Released> {
     let (tx, mut rx) = unbounded_channel::<Released>();
-    let (session, run) = (session.clone(), run.to_owned());
+    let session = session.clone();
     tokio::spawn(async move {
         while let Some(r) = rx.recv().await {
-            for (key, bytes) in r.cells {
+            for (key, bytes) in r {
                 let _ = zenoh_bus::put(&session, &key, bytes).await;
-            }
-            if let Some(bytes) = r.bundle {
-                let _ = zenoh_bus::put(&session, &keys::every_cell_genes(&run), bytes).await;
             }
         }
     });
@@ -399,24 +392,38 @@ fn spawn_publisher(session: &Session, run: &str) -> UnboundedSender<Released> {
 
 struct CellAgg {
     expect: Vec<AgentRange>,
-    got: Vec<(AgentRange, GeneBatch)>,
+    /// Each process's batch, and its encoding when some hosting process shares the cell.
+    got: Vec<(AgentRange, GeneBatch, Option<Blob>)>,
     sent: bool,
+    /// Some hosting process shares the cell.
+    hosted: bool,
 }
 
 impl GeneHub {
-    fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>, per_cell: bool) {
+    /// Open step `step`: `cells` are the shared cells with the processes centred in
+    /// each; `hosting` the processes served with [`HostGenes`].
+    fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>, per_cell: bool, hosting: &[AgentRange]) {
         self.step = step;
         self.per_cell = per_cell;
         self.hostile = 0;
-        self.sent.clear();
-        self.bundled = false;
-        self.cells =
-            cells.into_iter().map(|(c, expect)| (c, CellAgg { expect, got: Vec::new(), sent: false })).collect();
+        self.hosts.clear();
+        for (&c, expect) in &cells {
+            for r in expect.iter().filter(|r| hosting.contains(r)) {
+                self.hosts.entry(*r).or_default().push(c);
+            }
+        }
+        self.cells = cells
+            .into_iter()
+            .map(|(c, expect)| {
+                let hosted = expect.iter().any(|r| hosting.contains(r));
+                (c, CellAgg { expect, got: Vec::new(), sent: false, hosted })
+            })
+            .collect();
     }
 
     /// Hand what filing released to the publisher.
     fn release(&self, r: Released) {
-        if !r.cells.is_empty() || r.bundle.is_some() {
+        if !r.is_empty() {
             let _ = self.publish.send(r);
         }
     }
@@ -438,14 +445,13 @@ impl GeneHub {
             return Released::default();
         }
         let mut out = Released::default();
-        out.cells.extend(self.file(from, batch));
-        out.bundle = self.bundle();
+        self.file(from, batch, &mut out);
         out
     }
 
     /// File the batches of one process's bundle.
     fn on_bundle(&mut self, key: &str, bytes: &[u8]) -> Released {
-        let (Parsed::GeneBundle { from: Some(from) }, Ok(bundle)) =
+        let (Parsed::GeneBundle { from }, Ok(bundle)) =
             (keys::parse(&self.run, key), decode::<geese_proto::net::GeneBundle>(bytes))
         else {
             self.hostile += 1;
@@ -457,83 +463,92 @@ impl GeneHub {
                 self.hostile += 1;
                 continue;
             }
-            out.cells.extend(self.file(from, batch));
+            self.file(from, batch, &mut out);
         }
-        out.bundle = self.bundle();
         out
     }
 
-    /// File one batch of the process speaking for `from`; returns the cell's aggregate
-    /// to publish (key, bytes) when the cell is complete.
-    fn file(&mut self, from: AgentRange, batch: GeneBatch) -> Option<(String, Vec<u8>)> {
+    /// File one batch of the process speaking for `from`; what completes goes to `out`.
+    fn file(&mut self, from: AgentRange, batch: GeneBatch, out: &mut Released) {
         if !batch.genes.iter().all(|g| from.contains(g.from) && g.step == batch.step)
             || !batch.absent.iter().all(|&a| from.contains(a))
         {
             // Genes of agents the sender does not speak for.
             self.hostile += 1;
-            return None;
+            return;
         }
         if batch.step != self.step {
             if batch.step > self.step {
                 self.hostile += 1;
             }
-            return None;
+            return;
         }
-        let agg = self.cells.get_mut(&batch.cell)?;
-        if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _)| *r == from) {
-            return None;
+        let Some(agg) = self.cells.get_mut(&batch.cell) else { return };
+        if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _, _)| *r == from) {
+            return;
         }
         let cell = batch.cell;
-        agg.got.push((from, batch));
-        self.complete(cell)
-    }
-
-    /// The bundle of every cell's aggregate, once, when the last cell is complete.
-    fn bundle(&mut self) -> Option<Vec<u8>> {
-        if self.bundled || self.cells.is_empty() || !self.cells.values().all(|a| a.sent) {
-            return None;
-        }
-        self.bundled = true;
-        let mut batches = std::mem::take(&mut self.sent);
-        batches.sort_by_key(|b| b.cell);
-        encode(&geese_proto::net::GeneBundle { step: self.step, batches }).ok()
+        let blob = if agg.hosted { Blob::of(&batch).ok() } else { None };
+        agg.got.push((from, batch, blob));
+        self.complete(cell, out);
     }
 
     /// A process left: stop waiting for it.
     fn forget(&mut self, gone: AgentRange) -> Released {
+        self.hosts.remove(&gone);
         let cells: Vec<u32> = self.cells.keys().copied().collect();
         let mut out = Released::default();
         for c in cells {
             if let Some(agg) = self.cells.get_mut(&c) {
                 agg.expect.retain(|r| *r != gone);
             }
-            out.cells.extend(self.complete(c));
+            self.complete(c, &mut out);
         }
-        out.bundle = self.bundle();
         out
     }
 
-    fn complete(&mut self, cell: u32) -> Option<(String, Vec<u8>)> {
-        let agg = self.cells.get_mut(&cell)?;
-        if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _)| g == r)) {
-            return None;
+    /// If every process expected in `cell` has spoken: its aggregate (per-cell readers),
+    /// then the [`HostGenes`] of every hosting process whose cells are now all complete.
+    fn complete(&mut self, cell: u32, out: &mut Released) {
+        let Some(agg) = self.cells.get_mut(&cell) else { return };
+        if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _, _)| g == r)) {
+            return;
         }
         agg.sent = true;
-        let mut all = GeneBatch { step: self.step, cell, genes: Vec::new(), absent: Vec::new() };
-        for (_, b) in agg.got.drain(..) {
-            all.genes.extend(b.genes);
-            all.absent.extend(b.absent);
-        }
-        all.genes.sort_by_key(|g| g.from);
-        all.absent.sort_unstable();
-        let out = if self.per_cell {
+        if self.per_cell {
+            let mut all = GeneBatch { step: self.step, cell, genes: Vec::new(), absent: Vec::new() };
+            for (_, b, _) in &agg.got {
+                all.genes.extend(b.genes.iter().cloned());
+                all.absent.extend(b.absent.iter().copied());
+            }
+            all.genes.sort_by_key(|g| g.from);
+            all.absent.sort_unstable();
             let (cx, cy) = self.geom.cell_col_row(cell);
-            encode(&all).ok().map(|bytes| (keys::cell_genes(&self.run, cx, cy), bytes))
-        } else {
-            None
-        };
-        self.sent.push(all);
-        out
+            if let Ok(bytes) = encode(&all) {
+                out.push((keys::cell_genes(&self.run, cx, cy), bytes));
+            }
+        }
+        if !agg.hosted {
+            return;
+        }
+        let ready: Vec<AgentRange> = self
+            .hosts
+            .iter()
+            .filter(|(_, cs)| cs.contains(&cell) && cs.iter().all(|c| self.cells.get(c).is_none_or(|a| a.sent)))
+            .map(|(r, _)| *r)
+            .collect();
+        for to in ready {
+            let Some(cells) = self.hosts.remove(&to) else { continue };
+            let mut batches = Vec::new();
+            for c in &cells {
+                if let Some(a) = self.cells.get(c) {
+                    batches.extend(a.got.iter().filter(|(r, _, _)| *r != to).filter_map(|(_, _, b)| b.clone()));
+                }
+            }
+            if let Ok(bytes) = encode(&HostGenes { step: self.step, cells, batches }) {
+                out.push((keys::host_genes(&self.run, to), bytes));
+            }
+        }
     }
 }
 
@@ -621,6 +636,12 @@ impl<'a> Server<'a> {
         self.covered() && (self.orchestrator || !self.spec.expect_orchestrator)
     }
 
+    /// Present agent processes that read no cell topic (hosting processes): they get
+    /// their percepts and genes on keys of their own.
+    fn hosting(&self) -> Vec<AgentRange> {
+        self.hosts.keys().filter(|r| !self.narrow.contains_key(r)).copied().collect()
+    }
+
     fn gather(&self) -> std::sync::MutexGuard<'_, Gather> {
         // A poisoned lock only means a callback panicked; the data is still usable.
         self.gather.lock().unwrap_or_else(|e| e.into_inner())
@@ -706,7 +727,8 @@ impl<'a> Server<'a> {
                 shared.retain(|_, v| v.len() > 1);
             }
             let per_cell = !self.narrow.is_empty();
-            self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared, per_cell);
+            let hosting = self.hosting();
+            self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared, per_cell, &hosting);
         }
         // 1. The tick (bare: every step; otherwise when the live set changed), then the
         //    percepts of every occupied cell.
@@ -729,8 +751,29 @@ impl<'a> Server<'a> {
                     self.session.put(ke, bytes).congestion_control(CongestionControl::Block).await.map_err(zerr)?;
                 }
             }
-            let bundle = encode(&PerceptBundle { step, percepts })?;
-            zenoh_bus::put(self.session, &keys::every_percept(&self.run), bundle).await?;
+            // Every hosting process: the percepts of its live agents' cells, each cell
+            // encoded once.
+            let hosting = self.hosting();
+            if !hosting.is_empty() {
+                let mut blobs: HashMap<u32, Blob> = HashMap::with_capacity(percepts.len());
+                for p in &percepts {
+                    blobs.insert(p.cell, Blob::of(p)?);
+                }
+                let g = self.world.geometry();
+                for to in hosting {
+                    let mut cells: Vec<u32> = to
+                        .ids()
+                        .filter_map(|id| self.world.bodies().get(id as usize))
+                        .filter(|b| b.live)
+                        .map(|b| g.cell_of(b.pos))
+                        .collect();
+                    cells.sort_unstable();
+                    cells.dedup();
+                    let percepts = cells.iter().filter_map(|c| blobs.get(c).cloned()).collect();
+                    let bytes = encode(&HostPercepts { step, percepts })?;
+                    zenoh_bus::put(self.session, &keys::host_percepts(&self.run, to), bytes).await?;
+                }
+            }
         }
         // 2–3 happen in the agent processes. 4. Gather intents.
         let started = Instant::now();
@@ -757,7 +800,7 @@ impl<'a> Server<'a> {
                             let h = self.genes.lock().unwrap_or_else(|e| e.into_inner());
                             for (c, a) in &h.cells {
                                 if !a.sent {
-                                    let got: Vec<AgentRange> = a.got.iter().map(|(r, _)| *r).collect();
+                                    let got: Vec<AgentRange> = a.got.iter().map(|(r, _, _)| *r).collect();
                                     tracing::trace!(target: "geese::flow", "step {step}: cell {c} expects {:?}, got {:?}", a.expect, got);
                                 }
                             }
