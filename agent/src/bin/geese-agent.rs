@@ -201,6 +201,7 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
     let token = session.liveliness().declare_token(keys::agents_presence(&run, range)).await.map_err(zerr)?;
     let work = async move {
         let r = host.run(&mut rx).await;
+        host.clock.report(host.range);
         drop(host);
         r
     };
@@ -303,6 +304,33 @@ struct Host {
     bare_tick: Option<u64>,
     /// A tick came: check that the cells of own agents are subscribed.
     tick_seen: bool,
+    clock: PhaseClock,
+}
+
+/// Where a process's steps spend their wall time (reported at exit on the
+/// `geese::flow` target at debug level): from the first percept of a step to its genes
+/// sent, waiting for cell-mates' genes, deciding and sending intents, and from the
+/// intents to the next step's first percept.
+#[derive(Default)]
+struct PhaseClock {
+    first_percept: Option<Instant>,
+    intents_sent: Option<Instant>,
+    steps: u64,
+    begin: Duration,
+    gene_wait: Duration,
+    finish: Duration,
+    between: Duration,
+}
+
+impl PhaseClock {
+    fn report(&self, range: AgentRange) {
+        let ms = |d: Duration| d.as_secs_f64() * 1e3 / self.steps.max(1) as f64;
+        tracing::debug!(
+            target: "geese::flow",
+            "agents {range}: {} steps; per step {:.3} ms percepts->genes sent, {:.3} ms gene wait, {:.3} ms finish+intents, {:.3} ms intents->next percept",
+            self.steps, ms(self.begin), ms(self.gene_wait), ms(self.finish), ms(self.between)
+        );
+    }
 }
 
 impl Host {
@@ -358,6 +386,7 @@ impl Host {
             stop: false,
             bare_tick: None,
             tick_seen: false,
+            clock: PhaseClock::default(),
         })
     }
 
@@ -602,6 +631,11 @@ impl Host {
         }
         if p.step > self.collecting {
             tracing::trace!(target: "geese::flow", "agents {}: collecting step {}", self.range, p.step);
+            let now = Instant::now();
+            if let Some(sent) = self.clock.intents_sent.take() {
+                self.clock.between += now - sent;
+            }
+            self.clock.first_percept = Some(now);
             self.collecting = p.step;
             self.percepts.clear();
             self.found.clear();
@@ -738,6 +772,10 @@ impl Host {
                 .await
                 .map_err(zerr)?;
         }
+        let genes_sent = Instant::now();
+        if let Some(f) = self.clock.first_percept {
+            self.clock.begin += genes_sent - f;
+        }
         // Which remote cell-mates each cell waits for: expected mates of another process
         // whose centre is in the cell (others publish elsewhere and count as lost).
         let mut wait_for: HashMap<u32, Vec<AgentId>> = HashMap::new();
@@ -788,6 +826,8 @@ impl Host {
                 self.counters.genes_late += late;
             }
         }
+        let finish_from = Instant::now();
+        self.clock.gene_wait += finish_from - genes_sent;
         // 3. Finish: act, learn, intents.
         let mut intents: Vec<Intent> = Vec::with_capacity(active.len());
         let mut cell_genes: HashMap<u32, Vec<GeneMsg>> = HashMap::new();
@@ -831,6 +871,10 @@ impl Host {
         let batch = IntentBatch { step: t, intents, idle, counters: std::mem::take(&mut self.counters) };
         tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
         self.publish_intents(batch).await?;
+        let now = Instant::now();
+        self.clock.finish += now - finish_from;
+        self.clock.intents_sent = Some(now);
+        self.clock.steps += 1;
         self.done = t;
         self.collect_deadline = None;
         self.percepts.clear();
