@@ -778,35 +778,29 @@ impl Host {
         }
         // Which remote cell-mates each cell waits for: expected mates of another process
         // whose centre is in the cell (others publish elsewhere and count as lost).
+        // Every own agent in a cell expects the same remote mates (its list differs from
+        // another own agent's only by own ids), so one agent's list per cell will do.
         let mut wait_for: HashMap<u32, Vec<AgentId>> = HashMap::new();
-        // Per cell, once: the agents of other processes centred there (sorted).
-        let mut remote: HashMap<u32, Vec<AgentId>> = HashMap::new();
         let (range, geom) = (self.range, self.geom);
         for &(id, c) in &active {
-            let k = self.idx(id);
+            if wait_for.contains_key(&c) {
+                continue;
+            }
             let Some(p) = self.percepts.get(&c) else {
                 continue;
             };
-            let here = remote.entry(c).or_insert_with(|| {
-                let mut v: Vec<AgentId> = p
-                    .agents
-                    .iter()
-                    .filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c)
-                    .map(|a| a.id)
-                    .collect();
-                v.sort_unstable();
-                v
-            });
-            for &m in self.learners[k].expected_mates() {
-                if here.binary_search(&m).is_ok() {
-                    wait_for.entry(c).or_default().push(m);
-                }
-            }
+            let mut remote: Vec<AgentId> =
+                p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c).map(|a| a.id).collect();
+            remote.sort_unstable();
+            let mates: Vec<AgentId> = self.learners[self.idx(id)]
+                .expected_mates()
+                .iter()
+                .copied()
+                .filter(|m| remote.binary_search(m).is_ok())
+                .collect();
+            wait_for.insert(c, mates);
         }
-        for v in wait_for.values_mut() {
-            v.sort_unstable();
-            v.dedup();
-        }
+        wait_for.retain(|_, mates| !mates.is_empty());
         if !wait_for.is_empty() {
             // One aggregate per shared cell, sent once every process there has spoken.
             let deadline = Instant::now() + Duration::from_millis(spec_deadlines.gene_ms as u64);
