@@ -14,7 +14,7 @@ use std::path::PathBuf;
 
 #[derive(clap::Args, Clone, Debug)]
 pub struct BenchNetArgs {
-    /// Scenarios PxK[:STEPS] (P agent processes hosting K agents each, STEPS learning
+    /// Scenarios PxK or PxK:STEPS (P agent processes hosting K agents each, STEPS learning
     /// steps), comma-separated.
     #[arg(long, default_value = "10x1,100x1,300x1,10x100")]
     pub scenarios: String,

@@ -1,4 +1,7 @@
 //! `geese`: run GEESE trials, inspect grammars, benchmark the core.
+// Doc comments of clap arguments are also `--help` text, where `<run>` or `<db>` reads
+// as a placeholder; rustdoc would take them for HTML tags.
+#![allow(rustdoc::invalid_html_tags)]
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use geese_agent::bt::Bt;

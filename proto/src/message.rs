@@ -138,7 +138,7 @@ pub struct GeneMsg {
     pub from: AgentId,
     /// Shared, not copied: in one process every cell-mate (and the sender's own
     /// individual) holds the same codons, and the receivers' gene cache recognises a
-    /// genome it mapped by address. On the wire it is one byte string (see [`codons`]).
+    /// genome it mapped by address. On the wire it is one byte string (a width byte, then the codons).
     #[serde(serialize_with = "codons::serialize", deserialize_with = "codons::deserialize")]
     pub genome: std::sync::Arc<[u32]>,
     pub fitness: f64,

@@ -1,7 +1,7 @@
 //! Messages of the distributed runtime (DESIGN.md §2–4 over Zenoh).
 //!
-//! The simulation messages ([`Percept`](crate::Percept), [`GeneMsg`](crate::GeneMsg),
-//! [`Intent`](crate::Intent), [`StepReport`](crate::StepReport)) travel unchanged; this
+//! The simulation messages ([`Percept`](crate::Percept), [`GeneMsg`], [`Intent`],
+//! [`StepReport`]) travel unchanged; this
 //! module adds what only a multi-process run needs:
 //!
 //! - [`NetRunSpec`]: everything the world server needs to run a trial (the launcher
