@@ -94,6 +94,20 @@ impl std::fmt::Display for AgentRange {
     }
 }
 
+/// Count a liveliness token of the process speaking for `r` in or out of `tokens`
+/// (by range, counted: a restarted process may briefly overlap the token of the one it
+/// replaces); a range leaves the map when its last token goes.
+pub fn tally(tokens: &mut std::collections::BTreeMap<AgentRange, u32>, r: AgentRange, alive: bool) {
+    if alive {
+        *tokens.entry(r).or_insert(0) += 1;
+    } else if let Some(c) = tokens.get_mut(&r) {
+        *c = c.saturating_sub(1);
+        if *c == 0 {
+            tokens.remove(&r);
+        }
+    }
+}
+
 /// A run name is one key chunk of letters, digits, `_`, `-` and `.`.
 pub fn valid_run_name(run: &str) -> bool {
     !run.is_empty() && run.len() <= 64 && run.bytes().all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
@@ -315,6 +329,14 @@ mod tests {
         assert_eq!(parse("r", "geese/other/agent/1/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/agent/x/action"), Parsed::Other);
         assert_eq!(parse("r", "geese/r/cell/-1/2/percept"), Parsed::Other);
+        let mut tokens = std::collections::BTreeMap::new();
+        super::tally(&mut tokens, one, true);
+        super::tally(&mut tokens, one, true);
+        super::tally(&mut tokens, one, false);
+        assert_eq!(tokens.get(&one), Some(&1));
+        super::tally(&mut tokens, one, false);
+        super::tally(&mut tokens, many, false);
+        assert!(tokens.is_empty());
         assert!(super::valid_run_name("geese-1.a_b"));
         assert!(!super::valid_run_name("a/b") && !super::valid_run_name("*") && !super::valid_run_name(""));
     }

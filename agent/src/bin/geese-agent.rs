@@ -323,6 +323,21 @@ struct PhaseClock {
 }
 
 impl PhaseClock {
+    /// The first percept of a new step arrived.
+    fn step_begins(&mut self, now: Instant) {
+        if let Some(sent) = self.intents_sent.take() {
+            self.between += now - sent;
+        }
+        self.first_percept = Some(now);
+    }
+
+    /// Time since `from`, added to `phase`; returns now.
+    fn lap(phase: &mut Duration, from: Instant) -> Instant {
+        let now = Instant::now();
+        *phase += now - from;
+        now
+    }
+
     fn report(&self, range: AgentRange) {
         let ms = |d: Duration| d.as_secs_f64() * 1e3 / self.steps.max(1) as f64;
         tracing::debug!(
@@ -429,8 +444,19 @@ impl Host {
             }
             return Ok(());
         }
-        let cells: Vec<u32> = self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect();
-        for c in cells {
+        self.want_own_cells().await
+    }
+
+    /// The cell of every own agent, dead or alive: a restarted agent's body is revived
+    /// where it stands, and the percept that shows it live may come before the tick that
+    /// says so (a process that dropped the cell then stayed deaf to it for good).
+    fn own_cells(&self) -> Vec<u32> {
+        self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect()
+    }
+
+    /// Make sure the cell of every own agent is subscribed for the next step.
+    async fn want_own_cells(&mut self) -> Result<()> {
+        for c in self.own_cells() {
             self.want(c, self.done + 1).await?;
         }
         Ok(())
@@ -481,10 +507,7 @@ impl Host {
             }
             if std::mem::take(&mut self.tick_seen) && !self.wide && !self.bare() {
                 // Wherever the world now says our agents are, listen there.
-                let cells: Vec<u32> = self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect();
-                for c in cells {
-                    self.want(c, self.done + 1).await?;
-                }
+                self.want_own_cells().await?;
             }
             if self.collecting > self.done {
                 let expired = self.collect_deadline.is_some_and(|d| tokio::time::Instant::now() >= d);
@@ -583,17 +606,7 @@ impl Host {
                     tracing::info!("agents {}: the world left; exiting", self.range);
                     self.stop = true;
                 }
-                Parsed::AgentsPresence { agents } => {
-                    let c = self.present.entry(agents).or_insert(0);
-                    if alive {
-                        *c += 1;
-                    } else {
-                        *c = c.saturating_sub(1);
-                        if *c == 0 {
-                            self.present.remove(&agents);
-                        }
-                    }
-                }
+                Parsed::AgentsPresence { agents } => keys::tally(&mut self.present, agents, alive),
                 _ => {}
             },
             Event::Stop => self.stop = true,
@@ -632,15 +645,13 @@ impl Host {
         if p.step > self.collecting {
             tracing::trace!(target: "geese::flow", "agents {}: collecting step {}", self.range, p.step);
             let now = Instant::now();
-            if let Some(sent) = self.clock.intents_sent.take() {
-                self.clock.between += now - sent;
-            }
-            self.clock.first_percept = Some(now);
+            self.clock.step_begins(now);
             self.collecting = p.step;
             self.percepts.clear();
             self.found.clear();
-            self.collect_deadline =
-                Some(tokio::time::Instant::now() + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64));
+            self.collect_deadline = Some(
+                tokio::time::Instant::from_std(now) + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64),
+            );
         }
         let cell = p.cell;
         for a in &p.agents {
@@ -772,10 +783,10 @@ impl Host {
                 .await
                 .map_err(zerr)?;
         }
-        let genes_sent = Instant::now();
-        if let Some(f) = self.clock.first_percept {
-            self.clock.begin += genes_sent - f;
-        }
+        let genes_sent = match self.clock.first_percept {
+            Some(f) => PhaseClock::lap(&mut self.clock.begin, f),
+            None => Instant::now(),
+        };
         // Which remote cell-mates each cell waits for: expected mates of another process
         // whose centre is in the cell (others publish elsewhere and count as lost).
         // Every own agent in a cell expects the same remote mates (its list differs from
@@ -820,8 +831,7 @@ impl Host {
                 self.counters.genes_late += late;
             }
         }
-        let finish_from = Instant::now();
-        self.clock.gene_wait += finish_from - genes_sent;
+        let finish_from = PhaseClock::lap(&mut self.clock.gene_wait, genes_sent);
         // 3. Finish: act, learn, intents.
         let mut intents: Vec<Intent> = Vec::with_capacity(active.len());
         let mut cell_genes: HashMap<u32, Vec<GeneMsg>> = HashMap::new();
@@ -844,10 +854,7 @@ impl Host {
         }
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
-            // Every own agent's cell, live or not: a restarted agent's body is revived
-            // where it stands, and the percept that shows it live may come before the
-            // tick that says so (dropping the cell then left the agent deaf for good).
-            let mut next: Vec<u32> = self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect();
+            let mut next = self.own_cells();
             for i in &intents {
                 for op in &i.ops {
                     if let Op::Move { to, .. } = op {
@@ -865,9 +872,7 @@ impl Host {
         let batch = IntentBatch { step: t, intents, idle, counters: std::mem::take(&mut self.counters) };
         tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
         self.publish_intents(batch).await?;
-        let now = Instant::now();
-        self.clock.finish += now - finish_from;
-        self.clock.intents_sent = Some(now);
+        self.clock.intents_sent = Some(PhaseClock::lap(&mut self.clock.finish, finish_from));
         self.clock.steps += 1;
         self.done = t;
         self.collect_deadline = None;

@@ -361,8 +361,9 @@ struct GeneHub {
     geom: geese_proto::Geometry,
     step: u64,
     cells: HashMap<u32, CellAgg>,
-    /// Hosting processes not yet served this step, with their shared cells.
-    hosts: HashMap<AgentRange, Vec<u32>>,
+    /// Hosting processes not yet served this step: their shared cells, and how many of
+    /// those are not complete yet.
+    hosts: HashMap<AgentRange, HostWait>,
     hostile: u32,
     /// Whether to publish each cell's aggregate on its own topic (some process reads
     /// cells one by one).
@@ -395,8 +396,13 @@ struct CellAgg {
     /// Each process's batch, and its encoding when some hosting process shares the cell.
     got: Vec<(AgentRange, GeneBatch, Option<Blob>)>,
     sent: bool,
-    /// Some hosting process shares the cell.
-    hosted: bool,
+    /// The hosting processes sharing the cell.
+    hosting: Vec<AgentRange>,
+}
+
+struct HostWait {
+    cells: Vec<u32>,
+    pending: usize,
 }
 
 impl GeneHub {
@@ -407,18 +413,29 @@ impl GeneHub {
         self.per_cell = per_cell;
         self.hostile = 0;
         self.hosts.clear();
-        for (&c, expect) in &cells {
-            for r in expect.iter().filter(|r| hosting.contains(r)) {
-                self.hosts.entry(*r).or_default().push(c);
-            }
-        }
         self.cells = cells
             .into_iter()
             .map(|(c, expect)| {
-                let hosted = expect.iter().any(|r| hosting.contains(r));
-                (c, CellAgg { expect, got: Vec::new(), sent: false, hosted })
+                let hosting: Vec<AgentRange> = expect.iter().filter(|r| hosting.contains(r)).copied().collect();
+                for r in &hosting {
+                    let w = self.hosts.entry(*r).or_insert_with(|| HostWait { cells: Vec::new(), pending: 0 });
+                    w.cells.push(c);
+                    w.pending += 1;
+                }
+                (c, CellAgg { expect, got: Vec::new(), sent: false, hosting })
             })
             .collect();
+    }
+
+    /// Say which processes each incomplete cell still waits for (`geese::flow` trace).
+    fn trace_incomplete(&self) {
+        if !tracing::enabled!(target: "geese::flow", tracing::Level::TRACE) {
+            return;
+        }
+        for (c, a) in self.cells.iter().filter(|(_, a)| !a.sent) {
+            let got: Vec<AgentRange> = a.got.iter().map(|(r, _, _)| *r).collect();
+            tracing::trace!(target: "geese::flow", "step {}: cell {c} expects {:?}, got {:?}", self.step, a.expect, got);
+        }
     }
 
     /// Hand what filing released to the publisher.
@@ -488,7 +505,7 @@ impl GeneHub {
             return;
         }
         let cell = batch.cell;
-        let blob = if agg.hosted { Blob::of(&batch).ok() } else { None };
+        let blob = if agg.hosting.is_empty() { None } else { Blob::of(&batch).ok() };
         agg.got.push((from, batch, blob));
         self.complete(cell, out);
     }
@@ -528,24 +545,22 @@ impl GeneHub {
                 out.push((keys::cell_genes(&self.run, cx, cy), bytes));
             }
         }
-        if !agg.hosted {
-            return;
-        }
-        let ready: Vec<AgentRange> = self
-            .hosts
-            .iter()
-            .filter(|(_, cs)| cs.contains(&cell) && cs.iter().all(|c| self.cells.get(c).is_none_or(|a| a.sent)))
-            .map(|(r, _)| *r)
-            .collect();
-        for to in ready {
-            let Some(cells) = self.hosts.remove(&to) else { continue };
+        // Each hosting process here has one cell fewer to wait for; those with none
+        // left get the other processes' batches of all their cells.
+        for to in agg.hosting.clone() {
+            let Some(w) = self.hosts.get_mut(&to) else { continue };
+            w.pending -= 1;
+            if w.pending > 0 {
+                continue;
+            }
+            let Some(w) = self.hosts.remove(&to) else { continue };
             let mut batches = Vec::new();
-            for c in &cells {
+            for c in &w.cells {
                 if let Some(a) = self.cells.get(c) {
                     batches.extend(a.got.iter().filter(|(r, _, _)| *r != to).filter_map(|(_, _, b)| b.clone()));
                 }
             }
-            if let Ok(bytes) = encode(&HostGenes { step: self.step, cells, batches }) {
+            if let Ok(bytes) = encode(&HostGenes { step: self.step, cells: w.cells, batches }) {
                 out.push((keys::host_genes(&self.run, to), bytes));
             }
         }
@@ -695,6 +710,10 @@ impl<'a> Server<'a> {
             s.next_step = step;
             s.cells = if self.spec.bare { Vec::new() } else { body_cells(&self.world) };
         }
+        // Who reads what this step: per-cell topics while some process reads cells one by
+        // one; a message of their own for every hosting process.
+        let per_cell = !self.narrow.is_empty();
+        let hosting = self.hosting();
         // Open the gathering before anything goes out: fast answers must find it open.
         {
             let bare = self.spec.bare;
@@ -726,8 +745,6 @@ impl<'a> Server<'a> {
                 }
                 shared.retain(|_, v| v.len() > 1);
             }
-            let per_cell = !self.narrow.is_empty();
-            let hosting = self.hosting();
             self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared, per_cell, &hosting);
         }
         // 1. The tick (bare: every step; otherwise when the live set changed), then the
@@ -742,9 +759,9 @@ impl<'a> Server<'a> {
                 self.announced = Some(live);
             }
             let percepts = self.world.percepts();
-            tracing::trace!(target: "geese::flow", "step {step}: {} percepts (per cell: {})", percepts.len(), !self.narrow.is_empty());
+            tracing::trace!(target: "geese::flow", "step {step}: {} percepts (per cell: {per_cell})", percepts.len());
             // Per-cell topics only while some process reads them.
-            if !self.narrow.is_empty() {
+            if per_cell {
                 for p in &percepts {
                     let ke = self.percept_key(p.cell);
                     let bytes = encode(p)?;
@@ -753,14 +770,13 @@ impl<'a> Server<'a> {
             }
             // Every hosting process: the percepts of its live agents' cells, each cell
             // encoded once.
-            let hosting = self.hosting();
             if !hosting.is_empty() {
                 let mut blobs: HashMap<u32, Blob> = HashMap::with_capacity(percepts.len());
                 for p in &percepts {
                     blobs.insert(p.cell, Blob::of(p)?);
                 }
                 let g = self.world.geometry();
-                for to in hosting {
+                for &to in &hosting {
                     let mut cells: Vec<u32> = to
                         .ids()
                         .filter_map(|id| self.world.bodies().get(id as usize))
@@ -796,15 +812,7 @@ impl<'a> Server<'a> {
                     if pending > 0 {
                         self.counters.intents_late = pending as u32;
                         tracing::warn!("step {step}: {pending} intents missing at the deadline");
-                        if tracing::enabled!(target: "geese::flow", tracing::Level::TRACE) {
-                            let h = self.genes.lock().unwrap_or_else(|e| e.into_inner());
-                            for (c, a) in &h.cells {
-                                if !a.sent {
-                                    let got: Vec<AgentRange> = a.got.iter().map(|(r, _, _)| *r).collect();
-                                    tracing::trace!(target: "geese::flow", "step {step}: cell {c} expects {:?}, got {:?}", a.expect, got);
-                                }
-                            }
-                        }
+                        self.genes.lock().unwrap_or_else(|e| e.into_inner()).trace_incomplete();
                     }
                     break;
                 }
@@ -868,16 +876,10 @@ impl<'a> Server<'a> {
         match ev {
             Event::Presence { alive, key } => match keys::parse(&self.run, &key) {
                 Parsed::AgentsPresence { agents } => {
+                    keys::tally(&mut self.hosts, agents, alive);
                     if alive {
-                        *self.hosts.entry(agents).or_insert(0) += 1;
                         self.revive.extend(agents.ids().filter(|&id| (id as usize) < self.n));
                     } else {
-                        if let Some(c) = self.hosts.get_mut(&agents) {
-                            *c -= 1;
-                            if *c == 0 {
-                                self.hosts.remove(&agents);
-                            }
-                        }
                         let mut hub = self.genes.lock().unwrap_or_else(|e| e.into_inner());
                         let ready = hub.forget(agents);
                         hub.release(ready);
@@ -893,16 +895,7 @@ impl<'a> Server<'a> {
                         eprintln!("geese-world: agent process {agents} left at step {step}");
                     }
                 }
-                Parsed::CellsPresence { agents } => {
-                    if alive {
-                        *self.narrow.entry(agents).or_insert(0) += 1;
-                    } else if let Some(c) = self.narrow.get_mut(&agents) {
-                        *c -= 1;
-                        if *c == 0 {
-                            self.narrow.remove(&agents);
-                        }
-                    }
-                }
+                Parsed::CellsPresence { agents } => keys::tally(&mut self.narrow, agents, alive),
                 Parsed::OrchestratorPresence => {
                     if alive {
                         self.orchestrator = true;
