@@ -2,10 +2,10 @@
 //!
 //! A message of another version or that does not decode is an error the receiver counts
 //! and drops; nothing here can panic on network input.
-use serde::{de::DeserializeOwned, Serialize};
+use serde::{Deserialize, Serialize};
 
 /// Bumped whenever a message type changes shape.
-pub const WIRE_VERSION: u8 = 5;
+pub const WIRE_VERSION: u8 = 6;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum CodecError {
@@ -19,14 +19,12 @@ pub enum CodecError {
     Encode(String),
 }
 
-pub fn encode<T: Serialize>(msg: &T) -> Result<Vec<u8>, CodecError> {
-    let mut out = vec![WIRE_VERSION];
-    let body = postcard::to_stdvec(msg).map_err(|e| CodecError::Encode(e.to_string()))?;
-    out.extend_from_slice(&body);
-    Ok(out)
+pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, CodecError> {
+    postcard::to_extend(msg, vec![WIRE_VERSION]).map_err(|e| CodecError::Encode(e.to_string()))
 }
 
-pub fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, CodecError> {
+/// Decode an enveloped message; it may borrow from `bytes` (nested messages do).
+pub fn decode<'a, T: Deserialize<'a>>(bytes: &'a [u8]) -> Result<T, CodecError> {
     let (&v, body) = bytes.split_first().ok_or(CodecError::Empty)?;
     if v != WIRE_VERSION {
         return Err(CodecError::Version { got: v, expected: WIRE_VERSION });

@@ -20,13 +20,13 @@
 //!   `cell/<cx>/<cy>/genes` as soon as every process there has spoken: each process then
 //!   receives one message per shared cell instead of one per cell-mate (2N deliveries
 //!   for N processes in a cell rather than N²).
-//! - [`GeneBundle`]: an agent process's batches of all its shared cells in one message;
-//!   the world files each batch as above. A process hosting many agents
-//!   (`--subscribe all`) reads no cell topic: the world sends it, on keys of its own,
-//!   [`HostPercepts`] (the percepts of its agents' cells) and [`HostGenes`] (the other
-//!   processes' batches of its shared cells, as soon as those cells are complete), each
-//!   cell encoded once by the world and copied into every process's message as a
-//!   [`Blob`].
+//! - [`GeneBundle`]: an agent process's batches of all its shared cells in one message,
+//!   each nested ([`Raw`]); the world checks each batch ([`GeneBatchHead`], genomes left
+//!   encoded) and files it as above. A process hosting many agents (`--subscribe all`)
+//!   reads no cell topic: the world sends it, on keys of its own, [`HostPercepts`] (the
+//!   percepts of its agents' cells, each encoded once by the world) and [`HostGenes`]
+//!   (the other processes' batches of its shared cells, as they sent them, as soon as
+//!   those cells are complete).
 //! - [`IntentBatch`]: the intents of one agent process for one step, with the ids of
 //!   agents that idle on purpose and the process's drop counters.
 //! - [`NetReport`]: the world's step report plus the network counters.
@@ -130,72 +130,126 @@ pub struct GeneBatch {
 }
 
 /// The postcard encoding (no envelope: the outer message carries the version) of one
-/// message inside another. The world encodes each cell's percept, and each process's
-/// gene batch of a cell, once, and hands every hosting process the ones it needs by
-/// copying bytes; a malformed blob is counted as hostile by whoever opens it.
-#[derive(Clone, Debug, PartialEq, Eq, Default)]
-pub struct Blob(pub Vec<u8>);
+/// message inside another, borrowed from the bytes that arrived. On the wire it is a
+/// length and the raw bytes.
+///
+/// Nesting is what lets the world forward what it does not need to rebuild: it encodes
+/// each cell's percept once and copies those bytes into every hosting process's
+/// message, and it checks an agent process's gene batch ([`GeneBatchHead`]) and
+/// forwards the very bytes the process sent, without decoding a genome. A malformed
+/// nested message is counted as hostile by whoever opens it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Raw<'a>(pub &'a [u8]);
 
-impl Blob {
-    pub fn of<T: Serialize>(msg: &T) -> Result<Blob, crate::CodecError> {
-        postcard::to_stdvec(msg).map(Blob).map_err(|e| crate::CodecError::Encode(e.to_string()))
-    }
-
-    pub fn open<T: serde::de::DeserializeOwned>(&self) -> Result<T, crate::CodecError> {
-        postcard::from_bytes(&self.0).map_err(|e| crate::CodecError::Decode(e.to_string()))
+impl<'a> Raw<'a> {
+    /// Decode the nested message.
+    pub fn open<T: Deserialize<'a>>(self) -> Result<T, crate::CodecError> {
+        postcard::from_bytes(self.0).map_err(|e| crate::CodecError::Decode(e.to_string()))
     }
 }
 
-impl Serialize for Blob {
+/// The nested encoding of `msg` (see [`Raw`]).
+pub fn nest<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, crate::CodecError> {
+    postcard::to_stdvec(msg).map_err(|e| crate::CodecError::Encode(e.to_string()))
+}
+
+impl Serialize for Raw<'_> {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_bytes(&self.0)
+        s.serialize_bytes(self.0)
     }
 }
 
-impl<'de> Deserialize<'de> for Blob {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Blob, D::Error> {
+impl<'de: 'a, 'a> Deserialize<'de> for Raw<'a> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Raw<'a>, D::Error> {
         struct Bytes;
-        impl serde::de::Visitor<'_> for Bytes {
-            type Value = Blob;
+        impl<'de> serde::de::Visitor<'de> for Bytes {
+            type Value = Raw<'de>;
             fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
-                f.write_str("a byte string")
+                f.write_str("a byte string borrowed from the message")
             }
-            fn visit_bytes<E: serde::de::Error>(self, b: &[u8]) -> Result<Blob, E> {
-                Ok(Blob(b.to_vec()))
+            fn visit_borrowed_bytes<E: serde::de::Error>(self, b: &'de [u8]) -> Result<Raw<'de>, E> {
+                Ok(Raw(b))
             }
         }
         d.deserialize_bytes(Bytes)
     }
 }
 
+/// A [`GeneBatch`] to encode from borrowed parts (the same bytes on the wire): an agent
+/// process nests the batch of each shared cell without cloning its genes.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct GeneBatchRef<'a> {
+    pub step: u64,
+    pub cell: u32,
+    pub genes: &'a [GeneMsg],
+    pub absent: &'a [AgentId],
+}
+
+/// A [`GeneBatch`] as the world checks it: the same wire layout, with every genome left
+/// encoded ([`GeneHead`]). The world relays genes it never decodes.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+pub struct GeneBatchHead<'a> {
+    pub step: u64,
+    pub cell: u32,
+    #[serde(borrow)]
+    pub genes: Vec<GeneHead<'a>>,
+    pub absent: Vec<AgentId>,
+}
+
+/// A [`GeneMsg`] with its genome left encoded (see [`GeneBatchHead`]).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+pub struct GeneHead<'a> {
+    pub step: u64,
+    pub from: AgentId,
+    #[serde(borrow)]
+    pub genome: Raw<'a>,
+    pub fitness: f64,
+    pub mapping: crate::message::GeneMapping,
+}
+
+impl GeneBatchHead<'_> {
+    /// Whether the batch speaks only for agents of `from` and only of its own step, and
+    /// every genome is well formed ([`crate::message::genome_bytes_ok`]).
+    pub fn honest(&self, from: crate::keys::AgentRange) -> bool {
+        self.genes
+            .iter()
+            .all(|g| from.contains(g.from) && g.step == self.step && crate::message::genome_bytes_ok(g.genome.0))
+            && self.absent.iter().all(|&a| from.contains(a))
+    }
+}
+
 /// What the world hands one agent process that hosts many agents, per step, on
-/// `agent/<ids>/in/percepts`: the percepts (each a [`Blob`] of a
+/// `agent/<ids>/in/percepts`: the percepts (each nested, a [`Raw`] of a
 /// [`Percept`](crate::Percept)) of the cells its live agents are in, and of no other
 /// cell. With 1,000 agents in 10 processes, every process decoding every cell's
 /// percepts and genes was a large part of the distributed overhead.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct HostPercepts {
+pub struct HostPercepts<'a> {
     pub step: u64,
-    pub percepts: Vec<Blob>,
+    #[serde(borrow)]
+    pub percepts: Vec<Raw<'a>>,
 }
 
 /// What the world hands one hosting agent process on `agent/<ids>/in/genes` once every
-/// process sharing a cell with it has spoken (or left): the [`GeneBatch`]es (as
-/// [`Blob`]s) of the other processes in those cells, not its own. `cells` lists those
+/// process sharing a cell with it has spoken (or left): the [`GeneBatch`]es (nested, as
+/// the other processes sent them) of those cells, not its own. `cells` lists those
 /// cells, so that a cell whose other processes all left is known to be complete too.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct HostGenes {
+pub struct HostGenes<'a> {
     pub step: u64,
     pub cells: Vec<u32>,
-    pub batches: Vec<Blob>,
+    #[serde(borrow)]
+    pub batches: Vec<Raw<'a>>,
 }
 
 /// An agent process's [`GeneBatch`]es of every cell it shares, for one step, in one
-/// message (to the world, on `agent/<ids>/genes`).
+/// message (to the world, on `agent/<ids>/genes`), each nested so that the world can
+/// forward it as it came.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct GeneBundle {
+pub struct GeneBundle<'a> {
     pub step: u64,
-    pub batches: Vec<GeneBatch>,
+    #[serde(borrow)]
+    pub batches: Vec<Raw<'a>>,
 }
 
 /// Drop counters of one agent process since its previous intent batch.
@@ -306,15 +360,49 @@ mod tests {
     }
 
     #[test]
-    fn blobs_carry_messages_and_bad_ones_fail_to_open() {
+    fn nested_messages_carry_messages_and_bad_ones_fail_to_open() {
         let batch = GeneBatch { step: 3, cell: 7, genes: vec![], absent: vec![4, 5] };
-        let h = HostGenes { step: 3, cells: vec![7], batches: vec![Blob::of(&batch).unwrap(), Blob(vec![0xff; 3])] };
-        let back = decode::<HostGenes>(&encode(&h).unwrap()).unwrap();
+        let nested = nest(&batch).unwrap();
+        let junk = vec![0xff; 3];
+        let h = HostGenes { step: 3, cells: vec![7], batches: vec![Raw(&nested), Raw(&junk)] };
+        let bytes = encode(&h).unwrap();
+        let back = decode::<HostGenes>(&bytes).unwrap();
         assert_eq!(back, h);
         assert_eq!(back.batches[0].open::<GeneBatch>().unwrap(), batch);
         assert!(back.batches[1].open::<GeneBatch>().is_err());
-        // A blob is a length and raw bytes on the wire, not a sequence of varints.
-        let big = Blob(vec![200; 1000]);
-        assert!(encode(&big).unwrap().len() <= 1000 + 3);
+        // A nested message is a length and raw bytes on the wire, not a sequence of varints.
+        let big = vec![200; 1000];
+        assert!(encode(&Raw(&big)).unwrap().len() <= 1000 + 3);
+    }
+
+    #[test]
+    fn gene_batches_encode_alike_from_parts_and_check_without_decoding_genomes() {
+        use crate::message::{GeneMapping, GeneMsg};
+        let mapping = GeneMapping { valid: true, used_codons: 2, depth: 3 };
+        let g = |from, genome: Vec<u32>| GeneMsg { step: 3, from, genome: genome.into(), fitness: 1.5, mapping };
+        let batch =
+            GeneBatch { step: 3, cell: 7, genes: vec![g(10, vec![1, 2, 3]), g(11, vec![70_000])], absent: vec![12] };
+        let by_parts = GeneBatchRef { step: 3, cell: 7, genes: &batch.genes, absent: &batch.absent };
+        let nested = nest(&batch).unwrap();
+        assert_eq!(nest(&by_parts).unwrap(), nested);
+        let head: GeneBatchHead = Raw(&nested).open().unwrap();
+        assert_eq!((head.step, head.cell, head.absent.as_slice()), (3, 7, &[12][..]));
+        assert_eq!(
+            head.genes.iter().map(|g| (g.from, g.fitness, g.mapping)).collect::<Vec<_>>(),
+            [(10, 1.5, mapping), (11, 1.5, mapping)]
+        );
+        let range = |first, n| crate::keys::AgentRange::new(first, n).unwrap();
+        assert!(head.honest(range(10, 3)));
+        assert!(!head.honest(range(10, 2)), "absent agent 12 is not the sender's");
+        assert!(!head.honest(range(11, 2)), "gene of agent 10 is not the sender's");
+        // A malformed genome is caught without decoding it.
+        let mut bad = batch.clone();
+        bad.genes[0].genome = vec![].into();
+        let mut bytes = nest(&bad).unwrap();
+        // Gene 0: step 3, from 10, then the genome: length 1, width byte 2 (no codons).
+        let at = bytes.windows(4).position(|w| w == [3, 10, 1, 2]).unwrap() + 3;
+        bytes[at] = 3;
+        let head: GeneBatchHead = Raw(&bytes).open().unwrap();
+        assert!(!head.honest(range(10, 3)));
     }
 }

@@ -34,8 +34,8 @@ use geese_agent::ge::Grammar;
 use geese_agent::{GeneCache, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, GeneBatch, GeneBundle, HostCounters, HostGenes, HostPercepts, IntentBatch, RunInfo, Tick,
-    LOSS_SALT_PERCEPT, NO_CELL,
+    loss_draw, nest, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts, IntentBatch, Raw,
+    RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
@@ -44,6 +44,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
+use zenoh::bytes::ZBytes;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
@@ -98,10 +99,11 @@ enum Event {
         cell: u32,
         bytes: Vec<u8>,
     },
-    /// The percepts of the cells of our agents ([`HostPercepts`]).
-    Percepts(Vec<u8>),
+    /// The percepts of the cells of our agents ([`HostPercepts`]), as received (not
+    /// copied: these are the large messages).
+    Percepts(ZBytes),
     /// The other processes' batches of our shared cells ([`HostGenes`]).
-    HostGenes(Vec<u8>),
+    HostGenes(ZBytes),
     Hostile,
     Presence {
         alive: bool,
@@ -428,12 +430,8 @@ impl Host {
                     .declare_subscriber(key)
                     .callback(move |s| {
                         let ev = match keys::parse(&run, s.key_expr().as_str()) {
-                            Parsed::HostPercepts { to } if to == range => {
-                                Event::Percepts(s.payload().to_bytes().into_owned())
-                            }
-                            Parsed::HostGenes { to } if to == range => {
-                                Event::HostGenes(s.payload().to_bytes().into_owned())
-                            }
+                            Parsed::HostPercepts { to } if to == range => Event::Percepts(s.payload().clone()),
+                            Parsed::HostGenes { to } if to == range => Event::HostGenes(s.payload().clone()),
                             _ => Event::Hostile,
                         };
                         let _ = t.send(ev);
@@ -572,7 +570,7 @@ impl Host {
                 Ok(p) if p.cell == cell => self.take_percept(p),
                 _ => self.counters.hostile += 1,
             },
-            Event::Percepts(bytes) => match decode::<HostPercepts>(&bytes) {
+            Event::Percepts(z) => match decode::<HostPercepts>(&z.to_bytes()) {
                 Ok(b) => {
                     let percepts = self.open_each(&b.percepts);
                     self.take_each(percepts, |p| p.step == b.step, Self::take_percept);
@@ -583,7 +581,7 @@ impl Host {
                 Ok(b) if b.cell == cell => self.take_genes(b),
                 _ => self.counters.hostile += 1,
             },
-            Event::HostGenes(bytes) => match decode::<HostGenes>(&bytes) {
+            Event::HostGenes(z) => match decode::<HostGenes>(&z.to_bytes()) {
                 Ok(b) => {
                     // The cells listed are complete, whether or not a batch came with them.
                     if b.step > self.done {
@@ -613,10 +611,11 @@ impl Host {
         }
     }
 
-    /// Open the blobs of a message from the world; one that does not open is hostile.
-    fn open_each<T: serde::de::DeserializeOwned>(&mut self, blobs: &[geese_proto::net::Blob]) -> Vec<T> {
-        let mut out = Vec::with_capacity(blobs.len());
-        for b in blobs {
+    /// Open the nested messages of a message from the world; one that does not open is
+    /// hostile.
+    fn open_each<'a, T: serde::Deserialize<'a>>(&mut self, nested: &[Raw<'a>]) -> Vec<T> {
+        let mut out = Vec::with_capacity(nested.len());
+        for b in nested {
             match b.open::<T>() {
                 Ok(v) => out.push(v),
                 Err(_) => self.counters.hostile += 1,
@@ -759,7 +758,7 @@ impl Host {
         let mut out_cells: Vec<u32> = local.keys().chain(absent.keys()).copied().collect();
         out_cells.sort_unstable();
         out_cells.dedup();
-        let mut batches = Vec::new();
+        let mut nested = Vec::new();
         for c in out_cells {
             let outsiders = self.percepts.get(&c).is_some_and(|p| {
                 p.agents.iter().any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
@@ -767,15 +766,17 @@ impl Host {
             if !outsiders {
                 continue;
             }
-            batches.push(GeneBatch {
+            nested.push(nest(&GeneBatchRef {
                 step: t,
                 cell: c,
-                genes: local.get(&c).cloned().unwrap_or_default(),
-                absent: absent.get(&c).cloned().unwrap_or_default(),
-            });
+                genes: local.get(&c).map_or(&[], |v| v.as_slice()),
+                absent: absent.get(&c).map_or(&[], |v| v.as_slice()),
+            })?);
         }
-        // All of them in one message: the world files each batch as its cell's.
-        if !batches.is_empty() {
+        // All of them in one message: the world files each batch as its cell's, and
+        // forwards it as it is.
+        if !nested.is_empty() {
+            let batches = nested.iter().map(|b| Raw(b)).collect();
             let bytes = encode(&GeneBundle { step: t, batches })?;
             self.session
                 .put(keys::agents_genes(&self.run, self.range), bytes)

@@ -7,7 +7,7 @@
 use geese_orchestrator::config::{RunConfig, Scheduled};
 use geese_orchestrator::launch::{run_net, NetOptions};
 use geese_orchestrator::Trial;
-use geese_proto::net::{Deadlines, LossRates, NetReport};
+use geese_proto::net::{nest, Deadlines, LossRates, NetReport, Raw};
 use geese_proto::{Perturbation, StepReport};
 use geese_world::Layout;
 use std::path::PathBuf;
@@ -259,6 +259,10 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
             let mut bad_version = encode(&forged_for(0, 1)).expect("encode");
             bad_version[0] = 99;
             let garbage = vec![1u8, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff];
+            let foreign_batch = |step| {
+                let cell = (cy * 10 + cx) as u32;
+                nest(&GeneBatch { step, cell, genes: vec![], absent: vec![11] }).expect("nest")
+            };
             for round in 0..20u64 {
                 let msgs: Vec<(String, Vec<u8>)> = vec![
                     // Undecodable and wrong-version intents.
@@ -289,18 +293,13 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                         .expect("encode"),
                     ),
                     // Bundles: garbage from an agent process, and a bundle holding a batch
-                    // of agents its key does not cover.
+                    // of agents its key does not cover and a batch that does not decode.
                     (keys::agents_genes(&run, from0), garbage.clone()),
                     (
                         keys::agents_genes(&run, from0),
                         encode(&geese_proto::net::GeneBundle {
                             step: round + 1,
-                            batches: vec![GeneBatch {
-                                step: round + 1,
-                                cell: (cy * 10 + cx) as u32,
-                                genes: vec![],
-                                absent: vec![11],
-                            }],
+                            batches: vec![Raw(&foreign_batch(round + 1)), Raw(&garbage)],
                         })
                         .expect("encode"),
                     ),

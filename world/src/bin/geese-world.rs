@@ -14,8 +14,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, Blob, GeneBatch, HostGenes, HostPercepts, IntentBatch, NetCounters, NetReport, NetRunSpec, ReportMsg,
-    RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
+    loss_draw, nest, GeneBatch, GeneBatchHead, HostGenes, HostPercepts, IntentBatch, NetCounters, NetReport,
+    NetRunSpec, Raw, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
@@ -393,8 +393,9 @@ fn spawn_publisher(session: &Session) -> UnboundedSender<Released> {
 
 struct CellAgg {
     expect: Vec<AgentRange>,
-    /// Each process's batch, and its encoding when some hosting process shares the cell.
-    got: Vec<(AgentRange, GeneBatch, Option<Blob>)>,
+    /// Each process's batch, nested as it sent it (checked, never decoded here unless
+    /// some process reads this cell's topic).
+    got: Vec<(AgentRange, Vec<u8>)>,
     sent: bool,
     /// The hosting processes sharing the cell.
     hosting: Vec<AgentRange>,
@@ -433,7 +434,7 @@ impl GeneHub {
             return;
         }
         for (c, a) in self.cells.iter().filter(|(_, a)| !a.sent) {
-            let got: Vec<AgentRange> = a.got.iter().map(|(r, _, _)| *r).collect();
+            let got: Vec<AgentRange> = a.got.iter().map(|(r, _)| *r).collect();
             tracing::trace!(target: "geese::flow", "step {}: cell {c} expects {:?}, got {:?}", self.step, a.expect, got);
         }
     }
@@ -451,7 +452,7 @@ impl GeneHub {
             self.hostile += 1;
             return Released::default();
         };
-        let Ok(batch) = decode::<GeneBatch>(bytes) else {
+        let Ok(batch) = decode::<GeneBatchHead>(bytes) else {
             self.hostile += 1;
             return Released::default();
         };
@@ -462,7 +463,8 @@ impl GeneHub {
             return Released::default();
         }
         let mut out = Released::default();
-        self.file(from, batch, &mut out);
+        // The body after the version byte is the batch's nested encoding.
+        self.file(from, &batch, &bytes[1..], &mut out);
         out
     }
 
@@ -475,22 +477,25 @@ impl GeneHub {
             return Released::default();
         };
         let mut out = Released::default();
-        for batch in bundle.batches {
+        for nested in bundle.batches {
+            let Ok(batch) = nested.open::<GeneBatchHead>() else {
+                self.hostile += 1;
+                continue;
+            };
             if batch.step != bundle.step || batch.cell as usize >= self.geom.cell_count() {
                 self.hostile += 1;
                 continue;
             }
-            self.file(from, batch, &mut out);
+            self.file(from, &batch, nested.0, &mut out);
         }
         out
     }
 
-    /// File one batch of the process speaking for `from`; what completes goes to `out`.
-    fn file(&mut self, from: AgentRange, batch: GeneBatch, out: &mut Released) {
-        if !batch.genes.iter().all(|g| from.contains(g.from) && g.step == batch.step)
-            || !batch.absent.iter().all(|&a| from.contains(a))
-        {
-            // Genes of agents the sender does not speak for.
+    /// File one batch (`nested`: its encoding) of the process speaking for `from`; what
+    /// completes goes to `out`.
+    fn file(&mut self, from: AgentRange, batch: &GeneBatchHead, nested: &[u8], out: &mut Released) {
+        if !batch.honest(from) {
+            // Genes of agents the sender does not speak for, or a malformed genome.
             self.hostile += 1;
             return;
         }
@@ -501,13 +506,11 @@ impl GeneHub {
             return;
         }
         let Some(agg) = self.cells.get_mut(&batch.cell) else { return };
-        if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _, _)| *r == from) {
+        if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _)| *r == from) {
             return;
         }
-        let cell = batch.cell;
-        let blob = if agg.hosting.is_empty() { None } else { Blob::of(&batch).ok() };
-        agg.got.push((from, batch, blob));
-        self.complete(cell, out);
+        agg.got.push((from, nested.to_vec()));
+        self.complete(batch.cell, out);
     }
 
     /// A process left: stop waiting for it.
@@ -528,15 +531,17 @@ impl GeneHub {
     /// then the [`HostGenes`] of every hosting process whose cells are now all complete.
     fn complete(&mut self, cell: u32, out: &mut Released) {
         let Some(agg) = self.cells.get_mut(&cell) else { return };
-        if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _, _)| g == r)) {
+        if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _)| g == r)) {
             return;
         }
         agg.sent = true;
         if self.per_cell {
             let mut all = GeneBatch { step: self.step, cell, genes: Vec::new(), absent: Vec::new() };
-            for (_, b, _) in &agg.got {
-                all.genes.extend(b.genes.iter().cloned());
-                all.absent.extend(b.absent.iter().copied());
+            for (_, nested) in &agg.got {
+                // Checked when filed; a genome's codons are only decoded here.
+                let Ok(b) = Raw(nested).open::<GeneBatch>() else { continue };
+                all.genes.extend(b.genes);
+                all.absent.extend(b.absent);
             }
             all.genes.sort_by_key(|g| g.from);
             all.absent.sort_unstable();
@@ -557,7 +562,7 @@ impl GeneHub {
             let mut batches = Vec::new();
             for c in &w.cells {
                 if let Some(a) = self.cells.get(c) {
-                    batches.extend(a.got.iter().filter(|(r, _, _)| *r != to).filter_map(|(_, _, b)| b.clone()));
+                    batches.extend(a.got.iter().filter(|(r, _)| *r != to).map(|(_, b)| Raw(b)));
                 }
             }
             if let Ok(bytes) = encode(&HostGenes { step: self.step, cells: w.cells, batches }) {
@@ -771,9 +776,9 @@ impl<'a> Server<'a> {
             // Every hosting process: the percepts of its live agents' cells, each cell
             // encoded once.
             if !hosting.is_empty() {
-                let mut blobs: HashMap<u32, Blob> = HashMap::with_capacity(percepts.len());
+                let mut nested: HashMap<u32, Vec<u8>> = HashMap::with_capacity(percepts.len());
                 for p in &percepts {
-                    blobs.insert(p.cell, Blob::of(p)?);
+                    nested.insert(p.cell, nest(p)?);
                 }
                 let g = self.world.geometry();
                 for &to in &hosting {
@@ -785,7 +790,7 @@ impl<'a> Server<'a> {
                         .collect();
                     cells.sort_unstable();
                     cells.dedup();
-                    let percepts = cells.iter().filter_map(|c| blobs.get(c).cloned()).collect();
+                    let percepts = cells.iter().filter_map(|c| nested.get(c).map(|b| Raw(b))).collect();
                     let bytes = encode(&HostPercepts { step, percepts })?;
                     zenoh_bus::put(self.session, &keys::host_percepts(&self.run, to), bytes).await?;
                 }
