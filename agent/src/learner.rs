@@ -178,8 +178,8 @@ pub struct Learner {
 /// mapping of its genome ([`GeneMsg::mapping`]).
 #[derive(Default)]
 pub struct GeneCache {
-    /// For received genes whose claimed mapping is implausible.
-    mapper: ge::Mapper,
+    received: ReceivedGenes,
+    lt: LtScratch,
     workspace: ge::Workspace,
     /// The behaviour trees of the phenotypes adopted lately, by phenotype: a run adopts
     /// a few thousand distinct phenotypes over hundreds of thousands of genetic steps
@@ -192,6 +192,43 @@ pub struct GeneCache {
 
 /// Most behaviour trees a [`GeneCache`] keeps.
 const TREES_KEPT: usize = 8192;
+
+/// Lateral transfer's buffers (indices into the step's genes), kept between learners.
+#[derive(Default)]
+struct LtScratch {
+    by_sender: Vec<u32>,
+    arrived: Vec<u32>,
+    /// Survivors of the IP filter in id order; `None` is the learner itself.
+    survivors: Vec<Option<u32>>,
+}
+
+/// Makes individuals of received genes.
+#[derive(Default)]
+struct ReceivedGenes {
+    /// For received genes whose claimed mapping is implausible.
+    mapper: ge::Mapper,
+}
+
+impl ReceivedGenes {
+    /// The individual of a received gene (its fitness is the caller's to set), with the
+    /// sender's mapping when it is plausible — a valid genome uses between one codon
+    /// and all of them and has a depth — and mapped here otherwise.
+    fn individual(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Individual {
+        let m = g.mapping;
+        let plausible = !m.valid || ((1..=g.genome.len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
+        if !plausible {
+            return ge::evaluate_stats_with(&mut self.mapper, grammar, g.genome.clone(), params);
+        }
+        Individual {
+            genome: g.genome.clone(),
+            valid: m.valid,
+            phenotype: None,
+            used_codons: if m.valid { m.used_codons as usize } else { 0 },
+            depth: if m.valid { m.depth as usize } else { 0 },
+            fitness: f64::NAN,
+        }
+    }
+}
 
 impl GeneCache {
     pub fn new() -> GeneCache {
@@ -210,25 +247,6 @@ impl GeneCache {
         }
         self.trees.insert(p.clone(), t.fresh());
         Ok(t)
-    }
-
-    /// The individual of a received gene (its fitness is the caller's to set), with the
-    /// sender's mapping when it is plausible — a valid genome uses between one codon
-    /// and all of them and has a depth — and mapped here otherwise.
-    fn received(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Individual {
-        let m = g.mapping;
-        let plausible = !m.valid || ((1..=g.genome.len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
-        if !plausible {
-            return ge::evaluate_stats_with(&mut self.mapper, grammar, g.genome.clone(), params);
-        }
-        Individual {
-            genome: g.genome.clone(),
-            valid: m.valid,
-            phenotype: None,
-            used_codons: if m.valid { m.used_codons as usize } else { 0 },
-            depth: if m.valid { m.depth as usize } else { 0 },
-            fitness: f64::NAN,
-        }
     }
 }
 
@@ -376,55 +394,65 @@ impl Learner {
     /// Candidates = this agent plus the cell-mates whose genes arrived, in id order; each
     /// kept with probability IP; if more than one survives all survivors' genes go to the
     /// pool. Returns the number of survivors.
+    ///
+    /// Works on indices into `genes` in the process's shared scratch buffers: a learner
+    /// with ~100 cell-mates allocating and growing three vectors per step was a tenth of
+    /// its allocations.
     fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32, cache: &mut GeneCache) -> u32 {
-        let mut arrived: Vec<&GeneMsg> = Vec::with_capacity(self.expected.len());
+        let LtScratch { by_sender, arrived, survivors } = &mut cache.lt;
         // This step's messages by sender (a stable sort keeps the first of duplicates
         // first; the transports hand them over sorted, which it checks in one pass), then
         // one merge walk with the expected mates (sorted by id): k per agent, not k².
-        let mut by_sender: Vec<&GeneMsg> = genes.iter().filter(|g| g.step == self.step).collect();
-        by_sender.sort_by_key(|g| g.from);
+        by_sender.clear();
+        by_sender.extend((0..genes.len() as u32).filter(|&i| genes[i as usize].step == self.step));
+        if !by_sender.is_sorted_by_key(|&i| genes[i as usize].from) {
+            by_sender.sort_by_key(|&i| genes[i as usize].from);
+        }
+        arrived.clear();
         let mut next = 0;
         for &mate in &self.expected {
-            while by_sender.get(next).is_some_and(|g| g.from < mate) {
+            while by_sender.get(next).is_some_and(|&i| genes[i as usize].from < mate) {
                 next += 1;
             }
-            let msg = by_sender.get(next).copied().filter(|g| g.from == mate);
-            match msg {
-                Some(g) if g.genome.len() <= self.cfg.ge.max_genome_length && g.fitness.is_finite() => {
+            let msg = by_sender.get(next).copied().filter(|&i| genes[i as usize].from == mate);
+            match msg.map(|i| (i, &genes[i as usize])) {
+                Some((i, g)) if g.genome.len() <= self.cfg.ge.max_genome_length && g.fitness.is_finite() => {
                     // Injected receiver-side loss.
                     if self.regime.gene_loss > 0.0 && self.rng_loss.random::<f64>() < self.regime.gene_loss {
                         *lost += 1;
                     } else {
-                        arrived.push(g);
+                        arrived.push(i);
                     }
                 }
                 Some(_) | None => *lost += 1,
             }
         }
-        // Candidates in id order, self included.
-        let mut survivors: Vec<Option<&GeneMsg>> = Vec::new();
+        // Candidates in id order, self included (`None`).
+        survivors.clear();
         let mut self_done = false;
         let ip = self.regime.ip;
-        for g in arrived.iter().copied() {
-            if !self_done && self.id < g.from {
+        for &i in arrived.iter() {
+            if !self_done && self.id < genes[i as usize].from {
                 self_done = true;
                 if self.rng_ip.random::<f64>() < ip {
                     survivors.push(None);
                 }
             }
             if self.rng_ip.random::<f64>() < ip {
-                survivors.push(Some(g));
+                survivors.push(Some(i));
             }
         }
         if !self_done && self.rng_ip.random::<f64>() < ip {
             survivors.push(None);
         }
+        let kept = survivors.len() as u32;
         if survivors.len() > 1 {
-            for s in &survivors {
-                let ind = match s {
+            for s in survivors.iter() {
+                let ind = match *s {
                     None => self.gene.clone(),
-                    Some(g) => {
-                        let mut ind = cache.received(&self.grammar, g, &self.cfg.ge);
+                    Some(i) => {
+                        let g = &genes[i as usize];
+                        let mut ind = cache.received.individual(&self.grammar, g, &self.cfg.ge);
                         if !ind.valid() {
                             *lost += 1;
                             continue;
@@ -436,7 +464,7 @@ impl Learner {
                 self.pool.push(ind);
             }
         }
-        survivors.len() as u32
+        kept
     }
 
     /// Genetic step on the pool, then adopt the winner (§5.6, §6.2 step 8).
@@ -484,7 +512,7 @@ mod tests {
         let msg = |mapping| GeneMsg { step: 1, from: 3, genome: genome.clone(), fitness: 2.0, mapping };
         let honest = GeneMapping { valid: true, used_codons: fresh.used_codons as u32, depth: fresh.depth as u32 };
         let mut cache = GeneCache::new();
-        let a = cache.received(&forage, &msg(honest), &p);
+        let a = cache.received.individual(&forage, &msg(honest), &p);
         assert!(a.valid() && Arc::ptr_eq(&a.genome, &genome));
         assert_eq!((a.used_codons, a.depth), (fresh.used_codons, fresh.depth));
         // Implausible claims are not taken: the gene is mapped here.
@@ -493,10 +521,10 @@ mod tests {
             GeneMapping { valid: true, used_codons: 99, depth: 10 },
             GeneMapping { valid: true, used_codons: 12, depth: 0 },
         ] {
-            let b = cache.received(&forage, &msg(bad), &p);
+            let b = cache.received.individual(&forage, &msg(bad), &p);
             assert_eq!((b.valid(), b.used_codons, b.depth), (true, fresh.used_codons, fresh.depth), "{bad:?}");
         }
         // A gene its sender calls invalid stays invalid (the receiver drops it).
-        assert!(!cache.received(&forage, &msg(GeneMapping::default()), &p).valid());
+        assert!(!cache.received.individual(&forage, &msg(GeneMapping::default()), &p).valid());
     }
 }
