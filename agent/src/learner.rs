@@ -12,7 +12,7 @@
 //! The learners of one process share a [`GeneCache`], so a received gene is mapped once
 //! for all its receivers; each pool still gets its own copy.
 use crate::bt::{Bt, BuildError};
-use crate::ge::{self, GeParams, Grammar, Individual};
+use crate::ge::{self, Candidate, GeParams, Grammar, Individual, Member};
 use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
@@ -200,6 +200,50 @@ struct LtScratch {
     arrived: Vec<u32>,
     /// Survivors of the IP filter in id order; `None` is the learner itself.
     survivors: Vec<Option<u32>>,
+    /// The survivors that join the pool, in order.
+    joining: Vec<Joining>,
+    /// Received genes whose claimed mapping was implausible, mapped here.
+    mapped: Vec<Individual>,
+}
+
+impl LtScratch {
+    fn clear(&mut self) {
+        self.joining.clear();
+        self.mapped.clear();
+    }
+}
+
+/// A survivor of the IP filter that joins the pool.
+#[derive(Clone, Copy)]
+enum Joining {
+    /// The learner's own gene.
+    Own,
+    /// A received gene (index into the step's genes) with the sender's mapping.
+    Gene(u32),
+    /// A received gene mapped here ([`LtScratch::mapped`]).
+    Mapped(usize),
+}
+
+/// How a received gene maps.
+enum Received {
+    /// The sender's claim is plausible and says valid.
+    Claimed,
+    /// Invalid (by the sender's word or mapped here): the gene is lost.
+    Invalid,
+    /// The claim was implausible; mapped here, valid (its fitness is the caller's to set).
+    Mapped(Individual),
+}
+
+/// A received gene as a pool candidate, with the sender's mapping and fitness.
+fn candidate(g: &GeneMsg) -> Candidate<'_> {
+    Candidate {
+        genome: &g.genome,
+        phenotype: None,
+        valid: g.mapping.valid,
+        used_codons: if g.mapping.valid { g.mapping.used_codons as usize } else { 0 },
+        depth: if g.mapping.valid { g.mapping.depth as usize } else { 0 },
+        fitness: g.fitness,
+    }
 }
 
 /// Makes individuals of received genes.
@@ -210,22 +254,34 @@ struct ReceivedGenes {
 }
 
 impl ReceivedGenes {
-    /// The individual of a received gene (its fitness is the caller's to set), with the
-    /// sender's mapping when it is plausible — a valid genome uses between one codon
-    /// and all of them and has a depth — and mapped here otherwise.
-    fn individual(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Individual {
+    /// How a received gene maps: the sender's mapping when it is plausible — a valid
+    /// genome uses between one codon and all of them and has a depth — and mapped here
+    /// otherwise.
+    fn mapping(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Received {
         let m = g.mapping;
         let plausible = !m.valid || ((1..=g.genome.len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
-        if !plausible {
-            return ge::evaluate_stats_with(&mut self.mapper, grammar, g.genome.clone(), params);
+        if plausible {
+            return if m.valid { Received::Claimed } else { Received::Invalid };
         }
-        Individual {
-            genome: g.genome.clone(),
-            valid: m.valid,
-            phenotype: None,
-            used_codons: if m.valid { m.used_codons as usize } else { 0 },
-            depth: if m.valid { m.depth as usize } else { 0 },
-            fitness: f64::NAN,
+        let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, g.genome.clone(), params);
+        if ind.valid() {
+            Received::Mapped(ind)
+        } else {
+            Received::Invalid
+        }
+    }
+
+    /// The individual of a received gene (its fitness is the sender's): what
+    /// [`ReceivedGenes::mapping`] says, as an individual of its own.
+    #[cfg(test)]
+    fn individual(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Individual {
+        match self.mapping(grammar, g, params) {
+            Received::Claimed => candidate(g).take(),
+            Received::Invalid => Individual { genome: g.genome.clone(), ..Individual::default() },
+            Received::Mapped(mut ind) => {
+                ind.fitness = g.fitness;
+                ind
+            }
         }
     }
 }
@@ -361,15 +417,21 @@ impl Learner {
             }
             FitnessVariant::Paper => self.cfg.carry_over * self.gene.fitness + explore + self.tree.paper_feedback(),
         };
-        // 6. sense: lateral transfer through the IP filter.
+        // 6. sense: lateral transfer through the IP filter; its survivors join the pool
+        //    (`cache.lt.joining`).
+        cache.lt.clear();
         if self.regime.lateral_transfer {
             stats.lt_rate = self.lateral_transfer(genes, &mut stats.genes_lost, cache);
         }
-        // 7–8. genetic operators and update.
-        if self.pool.len() >= self.cfg.st {
-            self.evolve(cache);
+        // 7–8. genetic operators and update. A pool that reaches ST is used and emptied
+        // at once, so the survivors join it only as candidates borrowing their genomes.
+        if self.pool.len() + cache.lt.joining.len() >= self.cfg.st {
+            self.evolve(genes, cache);
             stats.genetic = GeneticTrigger::Storage;
-        } else if self.cfg.stagnation_explore > 0
+            return self.intent(stats);
+        }
+        self.keep_joining(genes, cache);
+        if self.cfg.stagnation_explore > 0
             && self.age > self.cfg.stagnation_age
             && (explore as u32) < self.cfg.stagnation_explore
         {
@@ -377,9 +439,14 @@ impl Learner {
                 let ind = ge::random_individual(&self.grammar, &self.cfg.ge, &mut self.rng_ge);
                 self.pool.push(ind);
             }
-            self.evolve(cache);
+            self.evolve(genes, cache);
             stats.genetic = GeneticTrigger::Stagnation;
         }
+        self.intent(stats)
+    }
+
+    /// The step's intent: the tree's operations, heading and the agent's numbers.
+    fn intent(&mut self, mut stats: AgentStats) -> Intent {
         stats.fitness = self.gene.fitness;
         stats.gene_digest = self.gene_digest;
         Intent {
@@ -399,7 +466,7 @@ impl Learner {
     /// with ~100 cell-mates allocating and growing three vectors per step was a tenth of
     /// its allocations.
     fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32, cache: &mut GeneCache) -> u32 {
-        let LtScratch { by_sender, arrived, survivors } = &mut cache.lt;
+        let LtScratch { by_sender, arrived, survivors, joining, mapped } = &mut cache.lt;
         // This step's messages by sender (a stable sort keeps the first of duplicates
         // first; the transports hand them over sorted, which it checks in one pass), then
         // one merge walk with the expected mates (sorted by id): k per agent, not k².
@@ -448,31 +515,59 @@ impl Learner {
         let kept = survivors.len() as u32;
         if survivors.len() > 1 {
             for s in survivors.iter() {
-                let ind = match *s {
-                    None => self.gene.clone(),
+                let join = match *s {
+                    None => Joining::Own,
                     Some(i) => {
                         let g = &genes[i as usize];
-                        let mut ind = cache.received.individual(&self.grammar, g, &self.cfg.ge);
-                        if !ind.valid() {
-                            *lost += 1;
-                            continue;
+                        match cache.received.mapping(&self.grammar, g, &self.cfg.ge) {
+                            Received::Invalid => {
+                                *lost += 1;
+                                continue;
+                            }
+                            Received::Claimed => Joining::Gene(i),
+                            Received::Mapped(mut ind) => {
+                                ind.fitness = g.fitness;
+                                mapped.push(ind);
+                                Joining::Mapped(mapped.len() - 1)
+                            }
                         }
-                        ind.fitness = g.fitness;
-                        ind
                     }
                 };
-                self.pool.push(ind);
+                joining.push(join);
             }
         }
         kept
     }
 
-    /// Genetic step on the pool, then adopt the winner (§5.6, §6.2 step 8).
-    fn evolve(&mut self, cache: &mut GeneCache) {
+    /// Put this step's joining survivors in the pool for good (the pool stays below ST).
+    fn keep_joining(&mut self, genes: &[GeneMsg], cache: &mut GeneCache) {
+        let LtScratch { joining, mapped, .. } = &mut cache.lt;
+        for j in joining.drain(..) {
+            let ind = match j {
+                Joining::Own => self.gene.clone(),
+                Joining::Gene(i) => candidate(&genes[i as usize]).take(),
+                Joining::Mapped(k) => std::mem::take(&mut mapped[k]),
+            };
+            self.pool.push(ind);
+        }
+    }
+
+    /// Genetic step on the pool and this step's joining survivors, in that order, then
+    /// adopt the winner (§5.6, §6.2 step 8).
+    fn evolve(&mut self, genes: &[GeneMsg], cache: &mut GeneCache) {
+        let GeneCache { lt, workspace, .. } = cache;
+        let mut pool: Vec<Candidate> = Vec::with_capacity(self.pool.len() + lt.joining.len());
+        pool.extend(self.pool.iter().map(Candidate::of));
+        pool.extend(lt.joining.iter().map(|j| match *j {
+            Joining::Own => Candidate::of(&self.gene),
+            Joining::Gene(i) => candidate(&genes[i as usize]),
+            Joining::Mapped(k) => Candidate::of(&lt.mapped[k]),
+        }));
         let winner =
-            ge::genetic_step_in(&mut cache.workspace, &self.grammar, &mut self.pool, &self.cfg.ge, &mut self.rng_ge)
-                .map(|(w, _)| w);
+            ge::genetic_step_on(workspace, &self.grammar, &mut pool, &self.cfg.ge, &mut self.rng_ge).map(|(w, _)| w);
+        drop(pool);
         self.pool.clear();
+        cache.lt.clear();
         let Ok(mut winner) = winner else { return };
         winner.materialize(&self.grammar, &self.cfg.ge);
         let tree = match cache.tree(&winner) {

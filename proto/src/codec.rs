@@ -20,7 +20,16 @@ pub enum CodecError {
 }
 
 pub fn encode<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, CodecError> {
-    postcard::to_extend(msg, vec![WIRE_VERSION]).map_err(|e| CodecError::Encode(e.to_string()))
+    encode_sized(msg, 64)
+}
+
+/// [`encode`] into a buffer of `capacity` bytes to begin with: a large message (the
+/// world's gene and percept bundles, hundreds of kilobytes) grown from a small buffer
+/// was copied over and over as it grew.
+pub fn encode_sized<T: Serialize + ?Sized>(msg: &T, capacity: usize) -> Result<Vec<u8>, CodecError> {
+    let mut out = Vec::with_capacity(capacity.max(1));
+    out.push(WIRE_VERSION);
+    postcard::to_extend(msg, out).map_err(|e| CodecError::Encode(e.to_string()))
 }
 
 /// Decode an enveloped message; it may borrow from `bytes` (nested messages do).

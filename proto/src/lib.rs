@@ -26,6 +26,6 @@ pub mod seed;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_bus;
 
-pub use codec::{decode, encode, CodecError, WIRE_VERSION};
+pub use codec::{decode, encode, encode_sized, CodecError, WIRE_VERSION};
 pub use geometry::{CellIdx, Geometry, Pos};
 pub use message::*;

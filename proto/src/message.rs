@@ -175,19 +175,33 @@ mod codons {
     use serde::Serializer;
     use std::sync::Arc;
 
+    /// Genomes up to this many bytes on the wire are encoded on the stack (every agent
+    /// publishes its gene every step; the default longest genome is 100 codons).
+    const ON_STACK: usize = 1 + 2 * 256;
+
     pub(super) fn serialize<S: Serializer>(genome: &Arc<[u32]>, s: S) -> Result<S::Ok, S::Error> {
         let wide = genome.iter().any(|&c| c > u16::MAX as u32);
         let width = if wide { 4 } else { 2 };
-        let mut out = Vec::with_capacity(1 + width * genome.len());
-        out.push(width as u8);
-        for &c in genome.iter() {
-            if wide {
-                out.extend_from_slice(&c.to_le_bytes());
-            } else {
-                out.extend_from_slice(&(c as u16).to_le_bytes());
+        let len = 1 + width * genome.len();
+        let mut stack = [0u8; ON_STACK];
+        let mut heap = Vec::new();
+        let out: &mut [u8] = if len <= ON_STACK {
+            &mut stack[..len]
+        } else {
+            heap.resize(len, 0);
+            &mut heap
+        };
+        out[0] = width as u8;
+        if wide {
+            for (o, &c) in out[1..].chunks_exact_mut(4).zip(genome.iter()) {
+                o.copy_from_slice(&c.to_le_bytes());
+            }
+        } else {
+            for (o, &c) in out[1..].chunks_exact_mut(2).zip(genome.iter()) {
+                o.copy_from_slice(&(c as u16).to_le_bytes());
             }
         }
-        s.serialize_bytes(&out)
+        s.serialize_bytes(out)
     }
 
     /// A width byte of 2 or 4, then whole codons of that width.

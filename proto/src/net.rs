@@ -148,9 +148,29 @@ impl<'a> Raw<'a> {
     }
 }
 
+/// Bytes enough to encode a message holding `nested` (plus `extra` bytes of its own
+/// fields), for [`crate::codec::encode_sized`].
+pub fn nested_size(nested: &[Raw], extra: usize) -> usize {
+    nested.iter().map(|r| r.0.len() + 5).sum::<usize>() + extra + 16
+}
+
 /// The nested encoding of `msg` (see [`Raw`]).
 pub fn nest<T: Serialize + ?Sized>(msg: &T) -> Result<Vec<u8>, crate::CodecError> {
-    postcard::to_stdvec(msg).map_err(|e| crate::CodecError::Encode(e.to_string()))
+    nest_sized(msg, 64)
+}
+
+/// [`nest`] into a buffer of `capacity` bytes to begin with (see
+/// [`crate::codec::encode_sized`]).
+pub fn nest_sized<T: Serialize + ?Sized>(msg: &T, capacity: usize) -> Result<Vec<u8>, crate::CodecError> {
+    postcard::to_extend(msg, Vec::with_capacity(capacity)).map_err(|e| crate::CodecError::Encode(e.to_string()))
+}
+
+impl GeneBatchRef<'_> {
+    /// About the size of the batch's encoding: each genome at most 4 bytes a codon,
+    /// plus a gene's other fields.
+    pub fn size_hint(&self) -> usize {
+        self.genes.iter().map(|g| 4 * g.genome.len() + 40).sum::<usize>() + 5 * self.absent.len() + 24
+    }
 }
 
 impl Serialize for Raw<'_> {

@@ -34,12 +34,12 @@ use geese_agent::ge::Grammar;
 use geese_agent::{GeneCache, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts, IntentBatch, Raw,
-    RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
+    loss_draw, nest_sized, nested_size, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts,
+    IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
-use geese_proto::{decode, encode, AgentId, Control, GeneMsg, Geometry, Intent, Op, Percept};
+use geese_proto::{decode, encode, encode_sized, AgentId, Control, GeneMsg, Geometry, Intent, Op, Percept};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -766,18 +766,20 @@ impl Host {
             if !outsiders {
                 continue;
             }
-            nested.push(nest(&GeneBatchRef {
+            let batch = GeneBatchRef {
                 step: t,
                 cell: c,
                 genes: local.get(&c).map_or(&[], |v| v.as_slice()),
                 absent: absent.get(&c).map_or(&[], |v| v.as_slice()),
-            })?);
+            };
+            nested.push(nest_sized(&batch, batch.size_hint())?);
         }
         // All of them in one message: the world files each batch as its cell's, and
         // forwards it as it is.
         if !nested.is_empty() {
-            let batches = nested.iter().map(|b| Raw(b)).collect();
-            let bytes = encode(&GeneBundle { step: t, batches })?;
+            let batches: Vec<Raw> = nested.iter().map(|b| Raw(b)).collect();
+            let size = nested_size(&batches, 0);
+            let bytes = encode_sized(&GeneBundle { step: t, batches }, size)?;
             self.session
                 .put(keys::agents_genes(&self.run, self.range), bytes)
                 .congestion_control(CongestionControl::Block)

@@ -31,8 +31,9 @@ pub use grammar::{Alternative, Grammar, GrammarError, Rule, Symbol};
 pub use init::{uniform_tree, Derivation};
 pub use mapper::{map_genome, MapLimits, MapStats, Mapper, Mapping};
 pub use operators::{
-    evaluate, evaluate_stats_with, fitness_cmp, genetic_step, genetic_step_in, genetic_step_with_stats,
-    random_individual, sort_by_fitness_desc, GeError, GeParams, Individual, ParamsError, StepStats, Workspace,
+    evaluate, evaluate_stats_with, fitness_cmp, genetic_step, genetic_step_in, genetic_step_on,
+    genetic_step_with_stats, random_individual, sort_by_fitness_desc, Candidate, GeError, GeParams, Individual, Member,
+    ParamsError, StepStats, Workspace,
 };
 pub use phenotype::{parse_phenotype, CompositeKind, PNode, PhenotypeError};
 

@@ -260,8 +260,89 @@ pub fn fitness_cmp(a: f64, b: f64) -> Ordering {
 }
 
 /// Sort best first (stable: equal fitness keeps its order).
-pub fn sort_by_fitness_desc(pop: &mut [Individual]) {
-    pop.sort_by(|a, b| fitness_cmp(b.fitness, a.fitness));
+pub fn sort_by_fitness_desc<M: Member>(pop: &mut [M]) {
+    pop.sort_by(|a, b| fitness_cmp(b.fitness(), a.fitness()));
+}
+
+/// What a genetic step reads of a pool member: an [`Individual`], or a [`Candidate`]
+/// that borrows one's parts.
+pub trait Member {
+    fn genome(&self) -> &[u32];
+    fn fitness(&self) -> f64;
+    /// Whether the genome maps, with its used codons and depth (0 when invalid).
+    fn mapping(&self) -> (bool, usize, usize);
+    /// The member as an individual of its own (it may be left empty).
+    fn take(&mut self) -> Individual;
+}
+
+impl Member for Individual {
+    fn genome(&self) -> &[u32] {
+        &self.genome
+    }
+    fn fitness(&self) -> f64 {
+        self.fitness
+    }
+    fn mapping(&self) -> (bool, usize, usize) {
+        (self.valid, self.used_codons, self.depth)
+    }
+    fn take(&mut self) -> Individual {
+        std::mem::take(self)
+    }
+}
+
+/// A pool member that borrows the genome (and phenotype) of an individual or a
+/// received gene, with a fitness of its own.
+///
+/// A learner with ~100 cell-mates puts ~50 received genes in its pool every step and
+/// empties it again in the same step's genetic step. As individuals, each one took and
+/// gave back a reference to the sender's codons: two atomic operations on a cache line
+/// of another agent's genome, per gene and receiver, though only the few parents that
+/// cross are ever read. A candidate touches a genome only when it is read, and becomes an
+/// individual only if it wins ([`Member::take`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Candidate<'a> {
+    pub genome: &'a Arc<[u32]>,
+    pub phenotype: Option<&'a Arc<str>>,
+    pub valid: bool,
+    pub used_codons: usize,
+    pub depth: usize,
+    pub fitness: f64,
+}
+
+impl<'a> Candidate<'a> {
+    /// `ind` as a candidate, with its own fitness.
+    pub fn of(ind: &'a Individual) -> Candidate<'a> {
+        Candidate {
+            genome: &ind.genome,
+            phenotype: ind.phenotype.as_ref(),
+            valid: ind.valid,
+            used_codons: ind.used_codons,
+            depth: ind.depth,
+            fitness: ind.fitness,
+        }
+    }
+}
+
+impl Member for Candidate<'_> {
+    fn genome(&self) -> &[u32] {
+        self.genome
+    }
+    fn fitness(&self) -> f64 {
+        self.fitness
+    }
+    fn mapping(&self) -> (bool, usize, usize) {
+        (self.valid, self.used_codons, self.depth)
+    }
+    fn take(&mut self) -> Individual {
+        Individual {
+            genome: self.genome.clone(),
+            valid: self.valid,
+            phenotype: self.phenotype.cloned(),
+            used_codons: self.used_codons,
+            depth: self.depth,
+            fitness: self.fitness,
+        }
+    }
 }
 
 /// Why a genetic step could not run. The pool is emptied regardless.
@@ -336,12 +417,11 @@ fn too_deep(st: &MapStats, max_tree_depth: usize) -> bool {
 
 /// Upper bound for a crossover cut point / mutation range: the used codons of a valid
 /// individual (clamped to its length), the whole genome of an invalid one.
-fn used_span(ind: &Individual) -> usize {
-    let len = ind.genome.len();
-    if ind.valid() && ind.used_codons >= 1 {
-        ind.used_codons.min(len)
-    } else {
-        len
+fn used_span<M: Member>(ind: &M) -> usize {
+    let len = ind.genome().len();
+    match ind.mapping() {
+        (true, used, _) if used >= 1 => used.min(len),
+        _ => len,
     }
 }
 
@@ -447,6 +527,17 @@ pub fn genetic_step_with_stats<R: Rng + ?Sized>(
     genetic_step_in(&mut Workspace::default(), grammar, pool, params, rng)
 }
 
+/// [`genetic_step_in`] over a pool of any [`Member`]s (the caller empties it).
+pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
+    ws: &mut Workspace,
+    grammar: &Grammar,
+    pool: &mut [M],
+    params: &GeParams,
+    rng: &mut R,
+) -> Result<(Individual, StepStats), GeError> {
+    step(ws, grammar, pool, params, rng)
+}
+
 /// [`genetic_step_with_stats`] with the caller's buffers.
 pub fn genetic_step_in<R: Rng + ?Sized>(
     ws: &mut Workspace,
@@ -480,10 +571,10 @@ struct Env<'a> {
 /// there. Off the tape an uncrossed valid child is a copy of its parent, whose mapping
 /// is known.
 #[allow(clippy::too_many_arguments)]
-fn map_crossed<R: Rng + ?Sized>(
+fn map_crossed<R: Rng + ?Sized, M: Member>(
     env: &Env<'_>,
     kid: Kid,
-    parent: &Individual,
+    parent: &M,
     cross: bool,
     genome: &[u32],
     tape: &mut Tape,
@@ -492,10 +583,9 @@ fn map_crossed<R: Rng + ?Sized>(
     rng: &mut R,
 ) -> Crossed {
     if !env.taped {
-        let stats = if !cross && parent.valid {
-            MapStats { valid: true, used_codons: parent.used_codons, depth: parent.depth }
-        } else {
-            mapper.map_stats(env.grammar, genome, env.limits)
+        let stats = match parent.mapping() {
+            (true, used_codons, depth) if !cross => MapStats { valid: true, used_codons, depth },
+            _ => mapper.map_stats(env.grammar, genome, env.limits),
         };
         return Crossed { kid, stats, taped: None };
     }
@@ -563,10 +653,10 @@ fn mutate_and_score<R: Rng + ?Sized>(
     (st, fitness)
 }
 
-fn step<R: Rng + ?Sized>(
+fn step<R: Rng + ?Sized, M: Member>(
     ws: &mut Workspace,
     grammar: &Grammar,
-    pool: &mut [Individual],
+    pool: &mut [M],
     params: &GeParams,
     rng: &mut R,
 ) -> Result<(Individual, StepStats), GeError> {
@@ -580,7 +670,7 @@ fn step<R: Rng + ?Sized>(
         return Err(GeError::TooFewParents { pool: pool.len(), parents: cutoff, truncation: params.truncation });
     }
     let parents = &pool[..cutoff];
-    if let Some(index) = parents.iter().position(|p| p.genome.is_empty()) {
+    if let Some(index) = parents.iter().position(|p| p.genome().is_empty()) {
         return Err(GeError::EmptyParent { index });
     }
     stats.parents = cutoff;
@@ -605,7 +695,7 @@ fn step<R: Rng + ?Sized>(
     let bound = grammar.d_bound(params.max_tree_depth);
     let ceiling = if *every_offspring { None } else { bound.d };
     let settled = |f: f64| ceiling.is_some_and(|c| f >= c);
-    let offspring_can_win = elites < params.population_size && !(elites > 0 && settled(pool[0].fitness));
+    let offspring_can_win = elites < params.population_size && !(elites > 0 && settled(pool[0].fitness()));
     // Whether a child can map valid but too deep, which discards its whole pair; if
     // not, a pair's second child is only made when the first did not settle the winner.
     let deep_possible = bound.deep_last;
@@ -620,7 +710,7 @@ fn step<R: Rng + ?Sized>(
     // (it keeps its mapping and D when there is none). Pairs and mutations are
     // independent draws, so making them pair by pair, child by child, instead of all
     // crossovers first gives every offspring the same law (the random stream differs).
-    pairs.plan(parents.iter().map(|p| (p.genome.len(), used_span(p))), max_len, params.crossover_prob);
+    pairs.plan(parents.iter().map(|p| (p.genome().len(), used_span(p))), max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
     let mut best: Option<(Kid, f64, MapStats)> = None;
@@ -635,7 +725,7 @@ fn step<R: Rng + ?Sized>(
         };
         attempts += 1;
         let (p0, p1) = (&parents[i], &parents[j]);
-        let (g0, g1) = (&p0.genome[..], &p1.genome[..]);
+        let (g0, g1) = (p0.genome(), p1.genome());
         let cross = cut.is_some();
         let (pt0, pt1) = cut.unwrap_or((g0.len(), g1.len()));
         let (len0, len1) = (pt0 + g1.len() - pt1, pt1 + g0.len() - pt0);
@@ -709,7 +799,7 @@ fn step<R: Rng + ?Sized>(
     let mut winner: Option<(Cand, f64)> = None;
     for c in candidates {
         let f = match c {
-            Cand::Pool(j) => pool[j].fitness,
+            Cand::Pool(j) => pool[j].fitness(),
             Cand::Kid => match best {
                 Some((_, f, _)) => f,
                 None => continue,
@@ -722,7 +812,7 @@ fn step<R: Rng + ?Sized>(
     let ind = match (winner, best) {
         (Some((Cand::Pool(j), _)), _) => {
             stats.winner_from_pool = true;
-            std::mem::take(&mut pool[j])
+            pool[j].take()
         }
         (Some((Cand::Kid, _)), Some((kid, fitness, st))) => {
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);

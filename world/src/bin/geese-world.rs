@@ -14,12 +14,12 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest, GeneBatch, GeneBatchHead, HostGenes, HostPercepts, IntentBatch, NetCounters, NetReport,
-    NetRunSpec, Raw, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
+    loss_draw, nest, nested_size, GeneBatch, GeneBatchHead, HostGenes, HostPercepts, IntentBatch, NetCounters,
+    NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
-use geese_proto::{decode, encode, Control, Intent};
+use geese_proto::{decode, encode, encode_sized, Control, Intent};
 use geese_world::{World, WorldConfig};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
@@ -565,7 +565,8 @@ impl GeneHub {
                     batches.extend(a.got.iter().filter(|(r, _)| *r != to).map(|(_, b)| Raw(b)));
                 }
             }
-            if let Ok(bytes) = encode(&HostGenes { step: self.step, cells: w.cells, batches }) {
+            let size = nested_size(&batches, 5 * w.cells.len());
+            if let Ok(bytes) = encode_sized(&HostGenes { step: self.step, cells: w.cells, batches }, size) {
                 out.push((keys::host_genes(&self.run, to), bytes));
             }
         }
@@ -790,8 +791,9 @@ impl<'a> Server<'a> {
                         .collect();
                     cells.sort_unstable();
                     cells.dedup();
-                    let percepts = cells.iter().filter_map(|c| nested.get(c).map(|b| Raw(b))).collect();
-                    let bytes = encode(&HostPercepts { step, percepts })?;
+                    let percepts: Vec<Raw> = cells.iter().filter_map(|c| nested.get(c).map(|b| Raw(b))).collect();
+                    let size = nested_size(&percepts, 0);
+                    let bytes = encode_sized(&HostPercepts { step, percepts }, size)?;
                     zenoh_bus::put(self.session, &keys::host_percepts(&self.run, to), bytes).await?;
                 }
             }
