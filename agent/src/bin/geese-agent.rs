@@ -578,7 +578,13 @@ impl Host {
                 Err(_) => self.counters.hostile += 1,
             },
             Event::Genes { cell, bytes } => match decode::<GeneBatch>(&bytes) {
-                Ok(b) if b.cell == cell => self.take_genes(b),
+                // A cell's own topic carries its whole aggregate: the cell is complete.
+                Ok(b) if b.cell == cell => {
+                    if b.step > self.done {
+                        self.heard.insert((b.step, cell));
+                    }
+                    self.take_genes(b)
+                }
                 _ => self.counters.hostile += 1,
             },
             Event::HostGenes(z) => match decode::<HostGenes>(&z.to_bytes()) {
@@ -593,8 +599,9 @@ impl Host {
                             }
                         }
                     }
+                    // Batches come as they reach the world, before their cell is complete.
                     let batches = self.open_each(&b.batches);
-                    self.take_each(batches, |g| g.step == b.step && b.cells.contains(&g.cell), Self::take_genes);
+                    self.take_each(batches, |g| g.step == b.step, Self::take_genes);
                 }
                 Err(_) => self.counters.hostile += 1,
             },
@@ -661,16 +668,15 @@ impl Host {
         self.percepts.insert(cell, p);
     }
 
-    /// File the world's genes of one cell (from their own message or a bundle).
+    /// File a batch of genes of one cell (the cell's aggregate, or one process's batch
+    /// of it; whether the cell is complete is said apart).
     fn take_genes(&mut self, b: GeneBatch) {
         if !b.genes.iter().all(|g| g.step == b.step) {
             self.counters.hostile += 1;
             return;
         }
         if b.step > self.done {
-            let cell = b.cell;
-            self.heard.insert((b.step, cell));
-            self.genes.push(Received { step: b.step, cell, batch: b });
+            self.genes.push(Received { step: b.step, cell: b.cell, batch: b });
         }
     }
 

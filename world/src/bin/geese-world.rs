@@ -352,18 +352,17 @@ async fn gene_subscriber(
 /// batches of the shared cells of a step as one bundle on `agent/<ids>/genes`; once
 /// every process with an agent centred in a cell has spoken (or left), the cell is
 /// complete. Then a process that reads cells one by one gets the cell's genes as one
-/// batch on `cell/<cx>/<cy>/genes`, and a hosting process, once all its shared cells
-/// are complete, gets the other processes' batches of those cells as one
-/// [`HostGenes`] on `agent/<ids>/in/genes`. Runs in the subscriber callback, like
-/// [`Gather`].
+/// batch on `cell/<cx>/<cy>/genes`. A hosting process gets the other processes' batches
+/// of its shared cells as they arrive, and then which cells are complete, in
+/// [`HostGenes`] messages on `agent/<ids>/in/genes` (one per bundle filed, at most).
+/// Runs in the subscriber callback, like [`Gather`].
 struct GeneHub {
     run: String,
     geom: geese_proto::Geometry,
     step: u64,
     cells: HashMap<u32, CellAgg>,
-    /// Hosting processes not yet served this step: their shared cells, and how many of
-    /// those are not complete yet.
-    hosts: HashMap<AgentRange, HostWait>,
+    /// What each hosting process sharing a cell this step has still to be sent.
+    hosts: HashMap<AgentRange, HostOut>,
     hostile: u32,
     /// Whether to publish each cell's aggregate on its own topic (some process reads
     /// cells one by one).
@@ -401,9 +400,12 @@ struct CellAgg {
     hosting: Vec<AgentRange>,
 }
 
-struct HostWait {
-    cells: Vec<u32>,
-    pending: usize,
+/// What a hosting process has still to be sent this step: other processes' batches
+/// (cell, index in the cell's `got`) and the cells that became complete.
+#[derive(Default)]
+struct HostOut {
+    batches: Vec<(u32, usize)>,
+    complete: Vec<u32>,
 }
 
 impl GeneHub {
@@ -419,9 +421,7 @@ impl GeneHub {
             .map(|(c, expect)| {
                 let hosting: Vec<AgentRange> = expect.iter().filter(|r| hosting.contains(r)).copied().collect();
                 for r in &hosting {
-                    let w = self.hosts.entry(*r).or_insert_with(|| HostWait { cells: Vec::new(), pending: 0 });
-                    w.cells.push(c);
-                    w.pending += 1;
+                    self.hosts.entry(*r).or_default();
                 }
                 (c, CellAgg { expect, got: Vec::new(), sent: false, hosting })
             })
@@ -465,6 +465,7 @@ impl GeneHub {
         let mut out = Released::default();
         // The body after the version byte is the batch's nested encoding.
         self.file(from, &batch, &bytes[1..], &mut out);
+        self.flush(&mut out);
         out
     }
 
@@ -488,6 +489,7 @@ impl GeneHub {
             }
             self.file(from, &batch, nested.0, &mut out);
         }
+        self.flush(&mut out);
         out
     }
 
@@ -510,6 +512,14 @@ impl GeneHub {
             return;
         }
         agg.got.push((from, nested.to_vec()));
+        // Hosting processes sharing the cell get the batch at once, not when the cell
+        // is complete.
+        let at = agg.got.len() - 1;
+        for h in agg.hosting.iter().filter(|&&h| h != from) {
+            if let Some(o) = self.hosts.get_mut(h) {
+                o.batches.push((batch.cell, at));
+            }
+        }
         self.complete(batch.cell, out);
     }
 
@@ -524,7 +534,35 @@ impl GeneHub {
             }
             self.complete(c, &mut out);
         }
+        self.flush(&mut out);
         out
+    }
+
+    /// Send every hosting process what it has still to be sent: one [`HostGenes`] with
+    /// the other processes' batches filed since, and the cells complete since.
+    ///
+    /// Batches go out as they arrive rather than once a process's cells are complete:
+    /// with 1,000 agents in 10 processes every process shares cells with every other,
+    /// so all cells completed at the last bundle, and the world then relayed ~130 kB to
+    /// each of ten processes in turn while the first served were already computing.
+    /// Streamed, most of it goes out while the processes wait at the barrier anyway.
+    fn flush(&mut self, out: &mut Released) {
+        for (to, o) in self.hosts.iter_mut() {
+            if o.batches.is_empty() && o.complete.is_empty() {
+                continue;
+            }
+            let batches: Vec<Raw> = o
+                .batches
+                .iter()
+                .filter_map(|&(c, i)| self.cells.get(&c).and_then(|a| a.got.get(i)).map(|(_, b)| Raw(b)))
+                .collect();
+            let cells = std::mem::take(&mut o.complete);
+            let size = nested_size(&batches, 5 * cells.len());
+            if let Ok(bytes) = encode_sized(&HostGenes { step: self.step, cells, batches }, size) {
+                out.push((keys::host_genes(&self.run, *to), bytes));
+            }
+            o.batches.clear();
+        }
     }
 
     /// If every process expected in `cell` has spoken: its aggregate (per-cell readers),
@@ -550,24 +588,11 @@ impl GeneHub {
                 out.push((keys::cell_genes(&self.run, cx, cy), bytes));
             }
         }
-        // Each hosting process here has one cell fewer to wait for; those with none
-        // left get the other processes' batches of all their cells.
-        for to in agg.hosting.clone() {
-            let Some(w) = self.hosts.get_mut(&to) else { continue };
-            w.pending -= 1;
-            if w.pending > 0 {
-                continue;
-            }
-            let Some(w) = self.hosts.remove(&to) else { continue };
-            let mut batches = Vec::new();
-            for c in &w.cells {
-                if let Some(a) = self.cells.get(c) {
-                    batches.extend(a.got.iter().filter(|(r, _)| *r != to).map(|(_, b)| Raw(b)));
-                }
-            }
-            let size = nested_size(&batches, 5 * w.cells.len());
-            if let Ok(bytes) = encode_sized(&HostGenes { step: self.step, cells: w.cells, batches }, size) {
-                out.push((keys::host_genes(&self.run, to), bytes));
+        // The hosting processes here hear that the cell is complete (all its batches
+        // went, or go, to them before that: [`GeneHub::flush`]).
+        for to in &agg.hosting {
+            if let Some(o) = self.hosts.get_mut(to) {
+                o.complete.push(cell);
             }
         }
     }
