@@ -527,17 +527,6 @@ pub fn genetic_step_with_stats<R: Rng + ?Sized>(
     genetic_step_in(&mut Workspace::default(), grammar, pool, params, rng)
 }
 
-/// [`genetic_step_in`] over a pool of any [`Member`]s (the caller empties it).
-pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
-    ws: &mut Workspace,
-    grammar: &Grammar,
-    pool: &mut [M],
-    params: &GeParams,
-    rng: &mut R,
-) -> Result<(Individual, StepStats), GeError> {
-    step(ws, grammar, pool, params, rng)
-}
-
 /// [`genetic_step_with_stats`] with the caller's buffers.
 pub fn genetic_step_in<R: Rng + ?Sized>(
     ws: &mut Workspace,
@@ -546,7 +535,7 @@ pub fn genetic_step_in<R: Rng + ?Sized>(
     params: &GeParams,
     rng: &mut R,
 ) -> Result<(Individual, StepStats), GeError> {
-    let result = step(ws, grammar, pool, params, rng);
+    let result = genetic_step_on(ws, grammar, pool, params, rng);
     pool.clear();
     result
 }
@@ -653,7 +642,8 @@ fn mutate_and_score<R: Rng + ?Sized>(
     (st, fitness)
 }
 
-fn step<R: Rng + ?Sized, M: Member>(
+/// [`genetic_step_in`] over a pool of any [`Member`]s (the caller empties it).
+pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
     ws: &mut Workspace,
     grammar: &Grammar,
     pool: &mut [M],
