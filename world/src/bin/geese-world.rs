@@ -123,6 +123,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         })
         .await
         .map_err(zerr)?;
+    let (publish, released) = unbounded_channel::<Released>();
     let genes = Arc::new(Mutex::new(GeneHub {
         run: run.clone(),
         geom: world.geometry(),
@@ -131,8 +132,9 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         hosts: HashMap::new(),
         hostile: 0,
         per_cell: true,
-        publish: spawn_publisher(&session),
+        publish,
     }));
+    spawn_publisher(&session, released, genes.clone());
     // Per-cell batches (processes of earlier versions, tests) and bundles.
     let _genes = gene_subscriber(&session, keys::all_gene_batches(&run), &genes, GeneHub::on_batch).await?;
     let _gene_bundles = gene_subscriber(&session, keys::all_agents_genes(&run), &genes, GeneHub::on_bundle).await?;
@@ -377,17 +379,24 @@ type Released = Vec<(String, Vec<u8>)>;
 /// Publishes what the hub releases, in order, from a task of its own. Zenoh callbacks
 /// must not wait: a put that blocks (congestion control) inside the callback that
 /// receives gene batches would stall the thread receiving every process's messages.
-fn spawn_publisher(session: &Session) -> UnboundedSender<Released> {
-    let (tx, mut rx) = unbounded_channel::<Released>();
+///
+/// Each time it wakes it also sends the hosting processes what the hub holds for them
+/// ([`GeneHub::flush`]): bundles filed while it was busy go out together, one message
+/// per process, rather than one message per process and bundle.
+fn spawn_publisher(session: &Session, mut rx: UnboundedReceiver<Released>, hub: Arc<Mutex<GeneHub>>) {
     let session = session.clone();
     tokio::spawn(async move {
-        while let Some(r) = rx.recv().await {
-            for (key, bytes) in r {
+        while let Some(first) = rx.recv().await {
+            let mut out = first;
+            while let Ok(more) = rx.try_recv() {
+                out.extend(more);
+            }
+            hub.lock().unwrap_or_else(|e| e.into_inner()).flush(&mut out);
+            for (key, bytes) in out {
                 let _ = zenoh_bus::put(&session, &key, bytes).await;
             }
         }
     });
-    tx
 }
 
 struct CellAgg {
@@ -439,11 +448,10 @@ impl GeneHub {
         }
     }
 
-    /// Hand what filing released to the publisher.
+    /// Hand what filing released to the publisher, and wake it to send the hosting
+    /// processes what the hub holds for them.
     fn release(&self, r: Released) {
-        if !r.is_empty() {
-            let _ = self.publish.send(r);
-        }
+        let _ = self.publish.send(r);
     }
 
     /// File one batch published on its cell's key.
@@ -465,7 +473,6 @@ impl GeneHub {
         let mut out = Released::default();
         // The body after the version byte is the batch's nested encoding.
         self.file(from, &batch, &bytes[1..], &mut out);
-        self.flush(&mut out);
         out
     }
 
@@ -489,7 +496,6 @@ impl GeneHub {
             }
             self.file(from, &batch, nested.0, &mut out);
         }
-        self.flush(&mut out);
         out
     }
 
@@ -534,7 +540,6 @@ impl GeneHub {
             }
             self.complete(c, &mut out);
         }
-        self.flush(&mut out);
         out
     }
 
