@@ -356,7 +356,8 @@ async fn gene_subscriber(
 /// complete. Then a process that reads cells one by one gets the cell's genes as one
 /// batch on `cell/<cx>/<cy>/genes`. A hosting process gets the other processes' batches
 /// of its shared cells as they arrive, and then which cells are complete, in
-/// [`HostGenes`] messages on `agent/<ids>/in/genes` (one per bundle filed, at most).
+/// [`HostGenes`] messages on `agent/<ids>/in/genes` (built by the publisher when it
+/// wakes: [`spawn_publisher`]).
 /// Runs in the subscriber callback, like [`Gather`].
 struct GeneHub {
     run: String,
