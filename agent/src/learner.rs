@@ -8,9 +8,11 @@
 //!
 //! The order inside `finish_step` is the reference code's (§6.2): tick, visited cells,
 //! fitness, lateral transfer into the pool, genetic operators, update. Genes are copied,
-//! never shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires.
-//! The learners of one process share a [`GeneCache`], so a received gene is mapped once
-//! for all its receivers; each pool still gets its own copy.
+//! never shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires:
+//! codons are immutable, so holding the sender's is as good as a copy (NOTES.md, "Shared
+//! genomes"), and a pool that reaches ST within the step only borrows them for that
+//! step's genetic step. The learners of one process share a
+//! [`GeneCache`]: scratch buffers, and the trees of adopted phenotypes.
 use crate::bt::{Bt, BuildError};
 use crate::ge::{self, Candidate, GeParams, Grammar, Individual, Member};
 use crate::view::View;
