@@ -129,10 +129,8 @@ fn main() -> Result<()> {
     let Some(range) = AgentRange::new(args.id, args.agents) else {
         bail!("--agents must be at least 1 and the ids must fit in 32 bits");
     };
-    if std::env::var_os(zenoh_bus::ZENOH_RUNTIME_ENV).is_none() {
-        // Before any thread exists: size Zenoh's internal pools for many processes.
-        std::env::set_var(zenoh_bus::ZENOH_RUNTIME_ENV, zenoh_bus::LEAN_ZENOH_RUNTIME);
-    }
+    // Before any thread exists: size Zenoh's internal pools for many processes.
+    zenoh_bus::lean_runtime_unless_set();
     let rt = zenoh_bus::runtime(args.threads)?;
     rt.block_on(host_main(args, range))
 }
