@@ -392,6 +392,12 @@ async fn run_net_async(
 
     // The world first: it tells where to connect.
     let mut world = Command::new(bin_dir.join("geese-world"));
+    // Few local agent processes: one Zenoh thread in the world (not for agents started
+    // elsewhere, `--processes 0`, whose number is unknown).
+    let few = (1..=zenoh_bus::LEAN_WORLD_MAX_PROCESSES).contains(&opts.processes);
+    if few && std::env::var_os(zenoh_bus::ZENOH_RUNTIME_ENV).is_none() {
+        world.env(zenoh_bus::ZENOH_RUNTIME_ENV, zenoh_bus::LEAN_ZENOH_RUNTIME);
+    }
     world
         .args(opts.zenoh.to_args())
         .arg("--spec")

@@ -405,14 +405,7 @@ fn main() -> Result<()> {
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
-    if matches!(cli.cmd, Cmd::Run(_) | Cmd::BenchNet(_) | Cmd::Campaign(_) | Cmd::Control(_)) {
-        // Before any thread of ours exists: one Zenoh thread for everything, as in the
-        // world and agent processes this launches (they inherit it). Not for
-        // `geese router`, which may route for many hosts.
-        geese_proto::zenoh_bus::lean_runtime_unless_set();
-    }
-    match cli.cmd {
+    match Cli::parse().cmd {
         Cmd::Run(a) => run_cmd(a),
         Cmd::Grammar { cmd } => grammar_cmd(cmd),
         Cmd::Bench(a) => bench_cmd(a),

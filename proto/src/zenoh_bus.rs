@@ -287,12 +287,19 @@ pub const ZENOH_RUNTIME_ENV: &str = "ZENOH_RUNTIME";
 
 /// Internal Zenoh thread pools sized for a machine running hundreds of GEESE processes
 /// on a few cores: one thread for everything (every pool handed over to the
-/// application one), which saves thread hand-offs on each message. Agent processes and
-/// the world server use it unless `ZENOH_RUNTIME` is set (the world too since its
-/// receive, send and publisher threads competed with ten busy agent processes for two
-/// cores: 10 × 100 hosted agents ran 4–9 % faster with it).
+/// application one), which saves thread hand-offs on each message. Agent processes use
+/// it unless `ZENOH_RUNTIME` is set; `geese run` gives it to the world server too when
+/// it launches few agent processes ([`LEAN_WORLD_MAX_PROCESSES`]).
 pub const LEAN_ZENOH_RUNTIME: &str =
     "(app: (worker_threads: 1), acc: (handover: app), net: (handover: app), tx: (handover: app), rx: (handover: app))";
+
+/// Most agent processes for which a launched world server runs Zenoh on one thread
+/// ([`LEAN_ZENOH_RUNTIME`]). With ten processes hosting 100 agents each, the world's
+/// receive, send and publisher threads competed with the busy agents for two cores, and
+/// one thread was faster in 8 of 10 interleaved pairs (about +5 %). With 100 processes
+/// of one agent, where the world routes for 100 links, it was 10 % slower (2,000 steps:
+/// 64.0 and 66.6 against 74.5 and 72.8 steps/s).
+pub const LEAN_WORLD_MAX_PROCESSES: u32 = 32;
 
 /// Use [`LEAN_ZENOH_RUNTIME`] unless `ZENOH_RUNTIME` is set. Call it first thing in
 /// `main`, before any thread exists (it sets an environment variable).

@@ -67,8 +67,6 @@ fn main() -> Result<()> {
     if !keys::valid_run_name(&spec.run) {
         bail!("run name {:?} must be one key chunk of letters, digits, '_', '-', '.'", spec.run);
     }
-    // Before any thread of ours exists: one Zenoh thread for everything.
-    zenoh_bus::lean_runtime_unless_set();
     let rt = zenoh_bus::runtime(args.threads)?;
     rt.block_on(serve(args.zenoh, spec))
 }
