@@ -567,9 +567,7 @@ impl Learner {
         }));
         let winner =
             ge::genetic_step_on(workspace, &self.grammar, &mut pool, &self.cfg.ge, &mut self.rng_ge).map(|(w, _)| w);
-        drop(pool);
         self.pool.clear();
-        cache.lt.clear();
         let Ok(mut winner) = winner else { return };
         winner.materialize(&self.grammar, &self.cfg.ge);
         let tree = match cache.tree(&winner) {

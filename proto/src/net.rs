@@ -25,8 +25,8 @@
 //!   encoded) and files it as above. A process hosting many agents (`--subscribe all`)
 //!   reads no cell topic: the world sends it, on keys of its own, [`HostPercepts`] (the
 //!   percepts of its agents' cells, each encoded once by the world) and [`HostGenes`]
-//!   (the other processes' batches of its shared cells, as they sent them, as soon as
-//!   those cells are complete).
+//!   (the other processes' batches of its shared cells, as they sent them and as they
+//!   arrive, then which of those cells are complete).
 //! - [`IntentBatch`]: the intents of one agent process for one step, with the ids of
 //!   agents that idle on purpose and the process's drop counters.
 //! - [`NetReport`]: the world's step report plus the network counters.

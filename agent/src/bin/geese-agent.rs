@@ -18,9 +18,9 @@
 //! publications, and the world publishes the next percepts only after every intent, so
 //! those subscriptions are in place in time. A process hosting many agents reads no cell
 //! topic (`--subscribe all`, the default when it hosts at least a quarter as many agents
-//! as there are cells): the world sends it two messages a step on keys of its own — the
-//! percepts of its agents' cells ([`HostPercepts`]), and the other processes' genes in
-//! its shared cells once those cells are complete ([`HostGenes`]) — rather than a message
+//! as there are cells): the world sends it messages on keys of its own — the percepts of
+//! its agents' cells ([`HostPercepts`]), and the other processes' genes in its shared
+//! cells as they arrive, then which cells are complete ([`HostGenes`]) — rather than a message
 //! per cell (with 1,000 agents in 10 processes, Zenoh's cost per message bounded the step
 //! rate) or every cell's (decoding all of them was most of the remaining overhead).
 //!

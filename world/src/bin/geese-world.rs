@@ -571,8 +571,8 @@ impl GeneHub {
         }
     }
 
-    /// If every process expected in `cell` has spoken: its aggregate (per-cell readers),
-    /// then the [`HostGenes`] of every hosting process whose cells are now all complete.
+    /// If every process expected in `cell` has spoken: its aggregate for per-cell
+    /// readers, and the cell noted as complete for the hosting processes sharing it.
     fn complete(&mut self, cell: u32, out: &mut Released) {
         let Some(agg) = self.cells.get_mut(&cell) else { return };
         if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _)| g == r)) {
