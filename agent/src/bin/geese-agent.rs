@@ -6,7 +6,7 @@
 //! 1. read each own agent's cell percept (subscribed in advance, see below);
 //! 2. `begin_step`, then publish the process's genes of each cell — only of cells where
 //!    an agent of another process is (own cell-mates get them in memory) — as one
-//!    [`GeneBundle`] of per-cell [`GeneBatch`]es on `agent/<ids>/genes`, and wait, up to
+//!    [`GeneBundle`] of per-cell [`GeneBatch`]es, LZ4-packed, on `agent/<ids>/genes`, and wait, up to
 //!    the gene deadline, for the world's batches of the cells with expected cell-mates
 //!    of other processes;
 //! 3. `finish_step` with the genes of the cell (the learner sorts candidates by id), and
@@ -19,8 +19,8 @@
 //! those subscriptions are in place in time. A process hosting many agents reads no cell
 //! topic (`--subscribe all`, the default when it hosts at least a quarter as many agents
 //! as there are cells): the world sends it messages on keys of its own — the percepts of
-//! its agents' cells ([`HostPercepts`]), and the other processes' genes in its shared
-//! cells as they arrive, then which cells are complete ([`HostGenes`]) — rather than a message
+//! its agents' cells ([`HostPercepts`]), and the packs of the other processes it shares
+//! cells with as they arrive, then which cells are complete ([`HostGenes`]) — rather than a message
 //! per cell (with 1,000 agents in 10 processes, Zenoh's cost per message bounded the step
 //! rate) or every cell's (decoding all of them was most of the remaining overhead).
 //!
@@ -34,7 +34,7 @@ use geese_agent::ge::Grammar;
 use geese_agent::{GeneCache, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest_sized, nested_size, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts,
+    loss_draw, nest_sized, pack, unpack, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts,
     IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
@@ -298,6 +298,8 @@ struct Host {
     genes: Vec<Received>,
     /// (step, cell) of every gene aggregate received from the world.
     heard: HashSet<(u64, u32)>,
+    /// Where received packs are unpacked (kept between messages).
+    unpacked: Vec<u8>,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
@@ -396,6 +398,7 @@ impl Host {
             found: HashMap::new(),
             genes: Vec::new(),
             heard: HashSet::new(),
+            unpacked: Vec::new(),
             present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
@@ -597,9 +600,18 @@ impl Host {
                             }
                         }
                     }
-                    // Batches come as they reach the world, before their cell is complete.
-                    let batches = self.open_each(&b.batches);
-                    self.take_each(batches, |g| g.step == b.step, Self::take_genes);
+                    // Packs come as they reach the world, before their cells are complete.
+                    let mut scratch = std::mem::take(&mut self.unpacked);
+                    for p in &b.packs {
+                        match unpack(p.0, &mut scratch) {
+                            Ok(nested) => {
+                                let batches = self.open_each(&nested);
+                                self.take_each(batches, |g| g.step == b.step, Self::take_genes);
+                            }
+                            Err(_) => self.counters.hostile += 1,
+                        }
+                    }
+                    self.unpacked = scratch;
                 }
                 Err(_) => self.counters.hostile += 1,
             },
@@ -778,12 +790,12 @@ impl Host {
             };
             nested.push(nest_sized(&batch, batch.size_hint())?);
         }
-        // All of them in one message: the world files each batch as its cell's, and
-        // forwards it as it is.
+        // All of them in one message, packed: the world files each batch as its cell's,
+        // and forwards the pack as it is.
         if !nested.is_empty() {
             let batches: Vec<Raw> = nested.iter().map(|b| Raw(b)).collect();
-            let size = nested_size(&batches, 0);
-            let bytes = encode_sized(&GeneBundle { step: t, batches }, size)?;
+            let packed = pack(&batches)?;
+            let bytes = encode_sized(&GeneBundle { step: t, packed: Raw(&packed) }, packed.len() + 16)?;
             self.session
                 .put(keys::agents_genes(&self.run, self.range), bytes)
                 .congestion_control(CongestionControl::Block)

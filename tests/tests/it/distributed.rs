@@ -292,14 +292,21 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                         })
                         .expect("encode"),
                     ),
-                    // Bundles: garbage from an agent process, and a bundle holding a batch
-                    // of agents its key does not cover and a batch that does not decode.
+                    // Bundles: garbage from an agent process, a bundle whose pack does not
+                    // unpack, and one holding a batch of agents its key does not cover and
+                    // a batch that does not decode.
                     (keys::agents_genes(&run, from0), garbage.clone()),
+                    (
+                        keys::agents_genes(&run, from0),
+                        encode(&geese_proto::net::GeneBundle { step: round + 1, packed: Raw(&garbage) })
+                            .expect("encode"),
+                    ),
                     (
                         keys::agents_genes(&run, from0),
                         encode(&geese_proto::net::GeneBundle {
                             step: round + 1,
-                            batches: vec![Raw(&foreign_batch(round + 1)), Raw(&garbage)],
+                            packed: Raw(&geese_proto::net::pack(&[Raw(&foreign_batch(round + 1)), Raw(&garbage)])
+                                .expect("pack")),
                         })
                         .expect("encode"),
                     ),

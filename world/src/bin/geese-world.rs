@@ -14,8 +14,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest, nested_size, GeneBatch, GeneBatchHead, HostGenes, HostPercepts, IntentBatch, NetCounters,
-    NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
+    loss_draw, nest, nested_size, pack, unpack, GeneBatch, GeneBatchHead, HostGenes, HostPercepts, IntentBatch,
+    NetCounters, NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
@@ -133,6 +133,8 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         hostile: 0,
         per_cell: true,
         publish,
+        packs: Vec::new(),
+        unpacked: Vec::new(),
     }));
     spawn_publisher(&session, released, genes.clone());
     // Per-cell batches (processes of earlier versions, tests) and bundles.
@@ -351,12 +353,12 @@ async fn gene_subscriber(
 }
 
 /// Per-cell gene aggregation (DESIGN.md §2 step 2). Agent processes publish their
-/// batches of the shared cells of a step as one bundle on `agent/<ids>/genes`; once
-/// every process with an agent centred in a cell has spoken (or left), the cell is
+/// batches of the shared cells of a step as one packed bundle on `agent/<ids>/genes`;
+/// once every process with an agent centred in a cell has spoken (or left), the cell is
 /// complete. Then a process that reads cells one by one gets the cell's genes as one
-/// batch on `cell/<cx>/<cy>/genes`. A hosting process gets the other processes' batches
-/// of its shared cells as they arrive, and then which cells are complete, in
-/// [`HostGenes`] messages on `agent/<ids>/in/genes` (built by the publisher when it
+/// batch on `cell/<cx>/<cy>/genes`. A hosting process gets the packs of the other
+/// processes it shares a cell with as they arrive, and then which cells are complete,
+/// in [`HostGenes`] messages on `agent/<ids>/in/genes` (built by the publisher when it
 /// wakes: [`spawn_publisher`]).
 /// Runs in the subscriber callback, like [`Gather`].
 struct GeneHub {
@@ -372,6 +374,11 @@ struct GeneHub {
     per_cell: bool,
     /// Where what the hub releases goes out ([`spawn_publisher`]).
     publish: UnboundedSender<Released>,
+    /// This step's packs for hosting processes ([`HostOut::packs`]): as their senders
+    /// sent them, or packed again without the batches the checks dropped.
+    packs: Vec<Vec<u8>>,
+    /// Where bundles are unpacked (kept between bundles).
+    unpacked: Vec<u8>,
 }
 
 /// What filing gene batches releases: messages (key, bytes) to publish, in order.
@@ -403,18 +410,18 @@ fn spawn_publisher(session: &Session, mut rx: UnboundedReceiver<Released>, hub: 
 struct CellAgg {
     expect: Vec<AgentRange>,
     /// Each process's batch, nested as it sent it (checked, never decoded here unless
-    /// some process reads this cell's topic).
+    /// some process reads this cell's topic; only then are its bytes kept).
     got: Vec<(AgentRange, Vec<u8>)>,
     sent: bool,
     /// The hosting processes sharing the cell.
     hosting: Vec<AgentRange>,
 }
 
-/// What a hosting process has still to be sent this step: other processes' batches
-/// (cell, index in the cell's `got`) and the cells that became complete.
+/// What a hosting process has still to be sent this step: other processes' packs
+/// (indices in [`GeneHub::packs`]) and the cells that became complete.
 #[derive(Default)]
 struct HostOut {
-    batches: Vec<(u32, usize)>,
+    packs: Vec<usize>,
     complete: Vec<u32>,
 }
 
@@ -426,6 +433,7 @@ impl GeneHub {
         self.per_cell = per_cell;
         self.hostile = 0;
         self.hosts.clear();
+        self.packs.clear();
         self.cells = cells
             .into_iter()
             .map(|(c, expect)| {
@@ -473,7 +481,10 @@ impl GeneHub {
         }
         let mut out = Released::default();
         // The body after the version byte is the batch's nested encoding.
-        self.file(from, &batch, &bytes[1..], &mut out);
+        let nested = Raw(&bytes[1..]);
+        if self.file(from, &batch, nested.0, &mut out) {
+            self.forward(from, &[(batch.cell, nested)], None);
+        }
         out
     }
 
@@ -486,48 +497,90 @@ impl GeneHub {
             return Released::default();
         };
         let mut out = Released::default();
-        for nested in bundle.batches {
-            let Ok(batch) = nested.open::<GeneBatchHead>() else {
-                self.hostile += 1;
-                continue;
-            };
-            if batch.step != bundle.step || batch.cell as usize >= self.geom.cell_count() {
-                self.hostile += 1;
-                continue;
+        let mut scratch = std::mem::take(&mut self.unpacked);
+        match unpack(bundle.packed.0, &mut scratch) {
+            Ok(nested) => {
+                let mut kept: Vec<(u32, Raw)> = Vec::with_capacity(nested.len());
+                for raw in &nested {
+                    let Ok(batch) = raw.open::<GeneBatchHead>() else {
+                        self.hostile += 1;
+                        continue;
+                    };
+                    if batch.step != bundle.step || batch.cell as usize >= self.geom.cell_count() {
+                        self.hostile += 1;
+                        continue;
+                    }
+                    if self.file(from, &batch, raw.0, &mut out) {
+                        kept.push((batch.cell, *raw));
+                    }
+                }
+                // Forwarded as it came when every batch passed (the usual case).
+                let whole = kept.len() == nested.len();
+                self.forward(from, &kept, whole.then_some(bundle.packed.0));
             }
-            self.file(from, &batch, nested.0, &mut out);
+            Err(_) => self.hostile += 1,
         }
+        self.unpacked = scratch;
         out
     }
 
     /// File one batch (`nested`: its encoding) of the process speaking for `from`; what
-    /// completes goes to `out`.
-    fn file(&mut self, from: AgentRange, batch: &GeneBatchHead, nested: &[u8], out: &mut Released) {
+    /// completes goes to `out`. Returns whether the batch was taken (checked, of this
+    /// step, of a shared cell the sender is expected in, and its first there).
+    fn file(&mut self, from: AgentRange, batch: &GeneBatchHead, nested: &[u8], out: &mut Released) -> bool {
         if !batch.honest(from) {
             // Genes of agents the sender does not speak for, or a malformed genome.
             self.hostile += 1;
-            return;
+            return false;
         }
         if batch.step != self.step {
             if batch.step > self.step {
                 self.hostile += 1;
             }
-            return;
+            return false;
         }
-        let Some(agg) = self.cells.get_mut(&batch.cell) else { return };
+        let Some(agg) = self.cells.get_mut(&batch.cell) else { return false };
         if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _)| *r == from) {
-            return;
+            return false;
         }
-        agg.got.push((from, nested.to_vec()));
-        // Hosting processes sharing the cell get the batch at once, not when the cell
-        // is complete.
-        let at = agg.got.len() - 1;
-        for h in agg.hosting.iter().filter(|&&h| h != from) {
-            if let Some(o) = self.hosts.get_mut(h) {
-                o.batches.push((batch.cell, at));
+        let kept = if self.per_cell { nested.to_vec() } else { Vec::new() };
+        agg.got.push((from, kept));
+        self.complete(batch.cell, out);
+        true
+    }
+
+    /// Queue the taken batches of `from` (cell, encoding) for the hosting processes that
+    /// share one of their cells, at once rather than when the cells are complete: as
+    /// `packed`, the pack they came in, when given, else packed here.
+    fn forward(&mut self, from: AgentRange, kept: &[(u32, Raw)], packed: Option<&[u8]>) {
+        let mut to: Vec<AgentRange> = Vec::new();
+        for (cell, _) in kept {
+            for h in self.cells.get(cell).into_iter().flat_map(|a| &a.hosting) {
+                if *h != from && !to.contains(h) {
+                    to.push(*h);
+                }
             }
         }
-        self.complete(batch.cell, out);
+        if to.is_empty() {
+            return;
+        }
+        let bytes = match packed {
+            Some(p) => p.to_vec(),
+            None => {
+                let raws: Vec<Raw> = kept.iter().map(|(_, r)| *r).collect();
+                match pack(&raws) {
+                    Ok(p) => p,
+                    Err(_) => return,
+                }
+            }
+        };
+        self.packs.push(bytes);
+        let at = self.packs.len() - 1;
+        for h in to {
+            if let Some(o) = self.hosts.get_mut(&h) {
+                o.packs.push(at);
+            }
+        }
     }
 
     /// A process left: stop waiting for it.
@@ -545,29 +598,25 @@ impl GeneHub {
     }
 
     /// Send every hosting process what it has still to be sent: one [`HostGenes`] with
-    /// the other processes' batches filed since, and the cells complete since.
+    /// the other processes' packs filed since, and the cells complete since.
     ///
-    /// Batches go out as they arrive rather than once a process's cells are complete:
+    /// Packs go out as they arrive rather than once a process's cells are complete:
     /// with 1,000 agents in 10 processes every process shares cells with every other,
     /// so all cells completed at the last bundle, and the world then relayed ~130 kB to
     /// each of ten processes in turn while the first served were already computing.
     /// Streamed, most of it goes out while the processes wait at the barrier anyway.
     fn flush(&mut self, out: &mut Released) {
         for (to, o) in self.hosts.iter_mut() {
-            if o.batches.is_empty() && o.complete.is_empty() {
+            if o.packs.is_empty() && o.complete.is_empty() {
                 continue;
             }
-            let batches: Vec<Raw> = o
-                .batches
-                .iter()
-                .filter_map(|&(c, i)| self.cells.get(&c).and_then(|a| a.got.get(i)).map(|(_, b)| Raw(b)))
-                .collect();
+            let packs: Vec<Raw> = o.packs.iter().filter_map(|&i| self.packs.get(i).map(|b| Raw(b))).collect();
             let cells = std::mem::take(&mut o.complete);
-            let size = nested_size(&batches, 5 * cells.len());
-            if let Ok(bytes) = encode_sized(&HostGenes { step: self.step, cells, batches }, size) {
+            let size = nested_size(&packs, 5 * cells.len());
+            if let Ok(bytes) = encode_sized(&HostGenes { step: self.step, cells, packs }, size) {
                 out.push((keys::host_genes(&self.run, *to), bytes));
             }
-            o.batches.clear();
+            o.packs.clear();
         }
     }
 
