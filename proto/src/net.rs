@@ -206,6 +206,15 @@ pub struct GeneBatchRef<'a> {
     pub absent: &'a [AgentId],
 }
 
+/// The step and cell of a nested [`GeneBatch`] (its first fields), read without
+/// decoding its genes: a pack holds batches of every cell its sender shares, and a
+/// receiver decodes only those of cells its agents are in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+pub struct GeneBatchCell {
+    pub step: u64,
+    pub cell: u32,
+}
+
 /// A [`GeneBatch`] as the world checks it: the same wire layout, with every genome left
 /// encoded ([`GeneHead`]). The world relays genes it never decodes.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -491,6 +500,7 @@ mod tests {
         assert_eq!(nest(&by_parts).unwrap(), nested);
         let head: GeneBatchHead = Raw(&nested).open().unwrap();
         assert_eq!((head.step, head.cell, head.absent.as_slice()), (3, 7, &[12][..]));
+        assert_eq!(Raw(&nested).open::<GeneBatchCell>().unwrap(), GeneBatchCell { step: 3, cell: 7 });
         assert_eq!(
             head.genes.iter().map(|g| (g.from, g.fitness, g.mapping)).collect::<Vec<_>>(),
             [(10, 1.5, mapping), (11, 1.5, mapping)]

@@ -34,8 +34,8 @@ use geese_agent::ge::Grammar;
 use geese_agent::{GeneCache, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest_sized, pack, unpack, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts,
-    IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
+    loss_draw, nest_sized, pack, unpack, GeneBatch, GeneBatchCell, GeneBatchRef, GeneBundle, HostCounters, HostGenes,
+    HostPercepts, IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
@@ -300,6 +300,10 @@ struct Host {
     heard: HashSet<(u64, u32)>,
     /// Where received packs are unpacked (kept between messages).
     unpacked: Vec<u8>,
+    /// Each cell's genes of the step being finished, own then received. Kept, emptied,
+    /// between steps: grown afresh each step from the batches of up to nine processes,
+    /// its ~100 vectors were reallocated about five times each.
+    cell_genes: HashMap<u32, Vec<GeneMsg>>,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
@@ -399,6 +403,7 @@ impl Host {
             genes: Vec::new(),
             heard: HashSet::new(),
             unpacked: Vec::new(),
+            cell_genes: HashMap::new(),
             present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
@@ -601,10 +606,21 @@ impl Host {
                         }
                     }
                     // Packs come as they reach the world, before their cells are complete.
+                    // Only batches of cells our agents are in are decoded (the percepts of
+                    // the step came first, from the same session).
+                    let ours: Option<HashSet<u32>> =
+                        (self.collecting == b.step).then(|| self.found.values().copied().collect());
                     let mut scratch = std::mem::take(&mut self.unpacked);
                     for p in &b.packs {
                         match unpack(p.0, &mut scratch) {
-                            Ok(nested) => {
+                            Ok(mut nested) => {
+                                if let Some(ours) = &ours {
+                                    // Batches that do not peek well are decoded, and counted.
+                                    nested.retain(|r| {
+                                        r.open::<GeneBatchCell>()
+                                            .map_or(true, |h| h.step != b.step || ours.contains(&h.cell))
+                                    });
+                                }
                                 let batches = self.open_each(&nested);
                                 self.take_each(batches, |g| g.step == b.step, Self::take_genes);
                             }
@@ -743,7 +759,8 @@ impl Host {
         let p_loss = self.info.spec.loss.percept;
         let mut idle: Vec<AgentId> = Vec::new();
         let mut active: Vec<(AgentId, u32)> = Vec::new();
-        let mut local: HashMap<u32, Vec<GeneMsg>> = HashMap::new();
+        // Each cell's genes, own first (kept between steps, emptied: see `cell_genes`).
+        let mut local = std::mem::take(&mut self.cell_genes);
         let mut absent: HashMap<u32, Vec<AgentId>> = HashMap::new();
         for &id in &own {
             let k = self.idx(id);
@@ -771,7 +788,8 @@ impl Host {
             active.push((id, c));
         }
         // Publish our genes in cells where an agent of another process has its centre.
-        let mut out_cells: Vec<u32> = local.keys().chain(absent.keys()).copied().collect();
+        let mut out_cells: Vec<u32> =
+            local.iter().filter(|(_, v)| !v.is_empty()).map(|(&c, _)| c).chain(absent.keys().copied()).collect();
         out_cells.sort_unstable();
         out_cells.dedup();
         let mut nested = Vec::new();
@@ -857,7 +875,7 @@ impl Host {
         // cloned (a clone touches every genome's reference count: ~900 cache lines of
         // other processes' genes per step).
         let range = self.range;
-        let mut cell_genes: HashMap<u32, Vec<GeneMsg>> = local;
+        let mut cell_genes = local;
         for r in self.genes.iter_mut().filter(|r| r.step == t) {
             let remote = std::mem::take(&mut r.batch.genes).into_iter().filter(|g| !range.contains(g.from));
             cell_genes.entry(r.cell).or_default().extend(remote);
@@ -873,6 +891,10 @@ impl Host {
             let genes = cell_genes.get(&c).unwrap_or(&none);
             intents.push(self.learners[k].finish_step(genes, &mut self.gene_cache));
         }
+        for v in cell_genes.values_mut() {
+            v.clear();
+        }
+        self.cell_genes = cell_genes;
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
             let mut next = self.own_cells();
