@@ -489,6 +489,38 @@ mod tests {
     }
 
     #[test]
+    fn corrupted_packs_never_panic() {
+        // Every single-byte change and every truncation of a real pack, and random bytes:
+        // an error or some batches, never a panic (the LZ4 decoder is the unsafe one,
+        // with its bounds checks on).
+        let nested: Vec<Vec<u8>> = (0..20)
+            .map(|c| nest(&GeneBatch { step: 1, cell: c, genes: vec![], absent: vec![c, c + 1] }).unwrap())
+            .collect();
+        let packed = pack(&nested.iter().map(|b| Raw(b)).collect::<Vec<_>>()).unwrap();
+        let mut scratch = Vec::new();
+        for at in 0..packed.len() {
+            for byte in [0u8, 1, 0x7f, 0x80, 0xff] {
+                let mut bad = packed.clone();
+                bad[at] = byte;
+                let _ = unpack(&bad, &mut scratch);
+            }
+            let _ = unpack(&packed[..at], &mut scratch);
+        }
+        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        for len in 0..2_000usize {
+            let junk: Vec<u8> = (0..len % 300)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    x as u8
+                })
+                .collect();
+            let _ = unpack(&junk, &mut scratch);
+        }
+    }
+
+    #[test]
     fn gene_batches_encode_alike_from_parts_and_check_without_decoding_genomes() {
         use crate::message::{GeneMapping, GeneMsg};
         let mapping = GeneMapping { valid: true, used_codons: 2, depth: 3 };
