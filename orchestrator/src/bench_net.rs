@@ -5,8 +5,9 @@
 //! tick, every agent process answers at once with an empty batch: the bus alone) and the
 //! **learning** run (the default foraging trial with P·K agents), and prints wall time,
 //! steps per second (from the first step report to the last, start-up excluded), the
-//! ratio learning/bare, and the resident memory per agent process. It prints figures;
-//! it asserts nothing.
+//! ratio learning/bare, and the resident memory per agent process; with `--repeat N` it
+//! runs each learning scenario N times and adds the minimum, median and maximum rate. It
+//! prints figures; it asserts nothing.
 use crate::config::RunConfig;
 use crate::launch::{run_net, NetOptions, NetOutcome};
 use anyhow::{bail, Context, Result};
@@ -27,6 +28,10 @@ pub struct BenchNetArgs {
     /// Skip the learning runs (bare lock-step only).
     #[arg(long)]
     pub bare_only: bool,
+    /// Learning runs per scenario, one after the other, then their minimum, median and
+    /// maximum: the machine's speed drifts over minutes, so one run can mislead.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub repeat: u32,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Directory of geese-world and geese-agent [default: next to geese].
@@ -85,6 +90,19 @@ fn run(args: &BenchNetArgs, sc: Scenario, bare: bool) -> Result<NetOutcome> {
     Ok(run_net(&spec, &opts, |_, _| {})?)
 }
 
+/// Minimum, median (the mean of the middle two of an even count) and maximum.
+fn spread(v: &[f64]) -> Option<(f64, f64, f64)> {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let n = s.len();
+    let median = match n {
+        0 => return None,
+        _ if n % 2 == 1 => s[n / 2],
+        _ => (s[n / 2 - 1] + s[n / 2]) / 2.0,
+    };
+    Some((s[0], median, s[n - 1]))
+}
+
 fn mib(kib: f64) -> f64 {
     kib / 1024.0
 }
@@ -109,25 +127,39 @@ pub fn bench_net_cmd(args: BenchNetArgs) -> Result<()> {
         if args.bare_only {
             continue;
         }
-        let learn = run(&args, sc, false).with_context(|| format!("{label}: learning run"))?;
-        let rate = learn.reports as f64 / learn.run_seconds.max(1e-9);
+        let mut rates = Vec::new();
+        let mut last = None;
+        for r in 1..=args.repeat {
+            let learn = run(&args, sc, false).with_context(|| format!("{label}: learning run"))?;
+            let rate = learn.reports as f64 / learn.run_seconds.max(1e-9);
+            let of = if args.repeat > 1 { format!(" (run {r} of {})", args.repeat) } else { String::new() };
+            println!(
+                "{label}: learning {} steps in {:.2} s = {:.1} steps/s ({:.0} agent-steps/s), {:.3} of bare; \
+                 wall with start-up {:.1} s; final task {:.2} %{of}",
+                learn.reports,
+                learn.run_seconds,
+                rate,
+                rate * agents as f64,
+                rate / bare_rate.max(1e-9),
+                learn.wall_seconds,
+                learn.summary.final_task_pct
+            );
+            rates.push(rate);
+            last = Some(learn);
+        }
+        if let Some((min, median, max)) = spread(&rates).filter(|_| rates.len() > 1) {
+            println!(
+                "{label}: learning over {} runs: min {min:.1}, median {median:.1}, max {max:.1} steps/s",
+                rates.len()
+            );
+        }
+        let Some(learn) = last else { continue };
         let rss = &learn.agent_rss_kib;
         let (mean, max) = if rss.is_empty() {
             (0.0, 0.0)
         } else {
             (rss.iter().sum::<u64>() as f64 / rss.len() as f64, *rss.iter().max().unwrap_or(&0) as f64)
         };
-        println!(
-            "{label}: learning {} steps in {:.2} s = {:.1} steps/s ({:.0} agent-steps/s), {:.3} of bare; \
-             wall with start-up {:.1} s; final task {:.2} %",
-            learn.reports,
-            learn.run_seconds,
-            rate,
-            rate * agents as f64,
-            rate / bare_rate.max(1e-9),
-            learn.wall_seconds,
-            learn.summary.final_task_pct
-        );
         println!(
             "{label}: RSS per agent process {:.1} MiB mean, {:.1} MiB max ({:.2} MiB per agent); world server {:.1} MiB",
             mib(mean),
@@ -151,5 +183,13 @@ mod tests {
         assert_eq!(v[2].per_process, 100);
         assert!(parse_scenarios("10", 1).is_err());
         assert!(parse_scenarios("0x1", 1).is_err());
+    }
+
+    #[test]
+    fn spread_is_min_median_max() {
+        assert_eq!(spread(&[]), None);
+        assert_eq!(spread(&[3.0]), Some((3.0, 3.0, 3.0)));
+        assert_eq!(spread(&[101.0, 99.0, 108.0]), Some((99.0, 101.0, 108.0)));
+        assert_eq!(spread(&[4.0, 1.0, 2.0, 10.0]), Some((1.0, 3.0, 10.0)));
     }
 }
