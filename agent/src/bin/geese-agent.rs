@@ -606,19 +606,18 @@ impl Host {
                         }
                     }
                     // Packs come as they reach the world, before their cells are complete.
-                    // Only batches of cells our agents are in are decoded (the percepts of
-                    // the step came first, from the same session).
-                    let ours: Option<HashSet<u32>> =
-                        (self.collecting == b.step).then(|| self.found.values().copied().collect());
+                    // Only batches of cells our agents are in (the cells whose percepts
+                    // the step brought, first, from the same session) are decoded.
+                    let filter = self.collecting == b.step;
                     let mut scratch = std::mem::take(&mut self.unpacked);
                     for p in &b.packs {
                         match unpack(p.0, &mut scratch) {
                             Ok(mut nested) => {
-                                if let Some(ours) = &ours {
+                                if filter {
                                     // Batches that do not peek well are decoded, and counted.
                                     nested.retain(|r| {
                                         r.open::<GeneBatchCell>()
-                                            .map_or(true, |h| h.step != b.step || ours.contains(&h.cell))
+                                            .map_or(true, |h| h.step != b.step || self.percepts.contains_key(&h.cell))
                                     });
                                 }
                                 let batches = self.open_each(&nested);
