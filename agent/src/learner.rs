@@ -236,15 +236,104 @@ enum Received {
     Mapped(Individual),
 }
 
+/// A gene a cell-mate offered, as a learner reads it: a [`GeneMsg`] (the in-process
+/// trial's, and every learner's own), or a [`GeneRef`] into an agent process's inbox of
+/// received genes.
+pub trait Gene {
+    fn step(&self) -> u64;
+    fn sender(&self) -> AgentId;
+    fn genome(&self) -> &[u32];
+    /// The codons' shared allocation, if they have one (a winner then takes a
+    /// reference rather than a copy).
+    fn shared(&self) -> Option<&Arc<[u32]>>;
+    fn fitness(&self) -> f64;
+    /// The sender's mapping of the genome ([`GeneMsg::mapping`]).
+    fn mapping(&self) -> GeneMapping;
+}
+
+impl Gene for GeneMsg {
+    fn step(&self) -> u64 {
+        self.step
+    }
+    fn sender(&self) -> AgentId {
+        self.from
+    }
+    fn genome(&self) -> &[u32] {
+        &self.genome
+    }
+    fn shared(&self) -> Option<&Arc<[u32]>> {
+        Some(&self.genome)
+    }
+    fn fitness(&self) -> f64 {
+        self.fitness
+    }
+    fn mapping(&self) -> GeneMapping {
+        self.mapping
+    }
+}
+
+/// A gene whose codons are borrowed from wherever its receiver keeps them.
+///
+/// An agent process hosting 100 of 1,000 agents receives ~700 genes a step. Decoded as
+/// [`GeneMsg`]s, each genome was an allocation of its own, written afresh every step in
+/// memory nine other processes had just pushed out of the caches; the process now
+/// decodes every genome of a step into one reused buffer and lends them out as these.
+#[derive(Clone, Copy, Debug)]
+pub struct GeneRef<'a> {
+    pub step: u64,
+    pub from: AgentId,
+    pub genome: &'a [u32],
+    pub shared: Option<&'a Arc<[u32]>>,
+    pub fitness: f64,
+    pub mapping: GeneMapping,
+}
+
+impl<'a> GeneRef<'a> {
+    /// A gene message, borrowed.
+    pub fn of(g: &'a GeneMsg) -> GeneRef<'a> {
+        GeneRef {
+            step: g.step,
+            from: g.from,
+            genome: &g.genome,
+            shared: Some(&g.genome),
+            fitness: g.fitness,
+            mapping: g.mapping,
+        }
+    }
+}
+
+impl Gene for GeneRef<'_> {
+    fn step(&self) -> u64 {
+        self.step
+    }
+    fn sender(&self) -> AgentId {
+        self.from
+    }
+    fn genome(&self) -> &[u32] {
+        self.genome
+    }
+    fn shared(&self) -> Option<&Arc<[u32]>> {
+        self.shared
+    }
+    fn fitness(&self) -> f64 {
+        self.fitness
+    }
+    fn mapping(&self) -> GeneMapping {
+        self.mapping
+    }
+}
+
 /// A received gene as a pool candidate, with the sender's mapping and fitness.
-fn candidate(g: &GeneMsg) -> Candidate<'_> {
+fn candidate<G: Gene>(g: &G) -> Candidate<'_> {
+    let m = g.mapping();
     Candidate {
-        genome: &g.genome,
+        genome: g.genome(),
+        shared: g.shared(),
         phenotype: None,
-        valid: g.mapping.valid,
-        used_codons: if g.mapping.valid { g.mapping.used_codons as usize } else { 0 },
-        depth: if g.mapping.valid { g.mapping.depth as usize } else { 0 },
-        fitness: g.fitness,
+        valid: m.valid,
+        used_codons: if m.valid { m.used_codons as usize } else { 0 },
+        depth: if m.valid { m.depth as usize } else { 0 },
+        fitness: g.fitness(),
     }
 }
 
@@ -259,13 +348,14 @@ impl ReceivedGenes {
     /// How a received gene maps: the sender's mapping when it is plausible — a valid
     /// genome uses between one codon and all of them and has a depth — and mapped here
     /// otherwise.
-    fn mapping(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Received {
-        let m = g.mapping;
-        let plausible = !m.valid || ((1..=g.genome.len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
+    fn mapping<G: Gene>(&mut self, grammar: &Grammar, g: &G, params: &ge::GeParams) -> Received {
+        let m = g.mapping();
+        let plausible = !m.valid || ((1..=g.genome().len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
         if plausible {
             return if m.valid { Received::Claimed } else { Received::Invalid };
         }
-        let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, g.genome.clone(), params);
+        let genome = g.shared().map_or_else(|| Arc::from(g.genome()), Arc::clone);
+        let ind = ge::evaluate_stats_with(&mut self.mapper, grammar, genome, params);
         if ind.valid() {
             Received::Mapped(ind)
         } else {
@@ -401,7 +491,7 @@ impl Learner {
     /// ignored). Without a percept the agent idles: an empty intent.
     ///
     /// `cache` holds the mapped genes of senders, shared by the learners of a process.
-    pub fn finish_step(&mut self, genes: &[GeneMsg], cache: &mut GeneCache) -> Intent {
+    pub fn finish_step<G: Gene>(&mut self, genes: &[G], cache: &mut GeneCache) -> Intent {
         let mut stats = AgentStats::default();
         if !self.have_percept {
             return Intent { step: self.step, agent: self.id, heading: self.view.heading, ops: Vec::new(), stats };
@@ -467,25 +557,25 @@ impl Learner {
     /// Works on indices into `genes` in the process's shared scratch buffers: a learner
     /// with ~100 cell-mates allocating and growing three vectors per step was a tenth of
     /// its allocations.
-    fn lateral_transfer(&mut self, genes: &[GeneMsg], lost: &mut u32, cache: &mut GeneCache) -> u32 {
+    fn lateral_transfer<G: Gene>(&mut self, genes: &[G], lost: &mut u32, cache: &mut GeneCache) -> u32 {
         let LtScratch { by_sender, arrived, survivors, joining, mapped } = &mut cache.lt;
         // This step's messages by sender (a stable sort keeps the first of duplicates
         // first; the transports hand them over sorted, which it checks in one pass), then
         // one merge walk with the expected mates (sorted by id): k per agent, not k².
         by_sender.clear();
-        by_sender.extend((0..genes.len() as u32).filter(|&i| genes[i as usize].step == self.step));
-        if !by_sender.is_sorted_by_key(|&i| genes[i as usize].from) {
-            by_sender.sort_by_key(|&i| genes[i as usize].from);
+        by_sender.extend((0..genes.len() as u32).filter(|&i| genes[i as usize].step() == self.step));
+        if !by_sender.is_sorted_by_key(|&i| genes[i as usize].sender()) {
+            by_sender.sort_by_key(|&i| genes[i as usize].sender());
         }
         arrived.clear();
         let mut next = 0;
         for &mate in &self.expected {
-            while by_sender.get(next).is_some_and(|&i| genes[i as usize].from < mate) {
+            while by_sender.get(next).is_some_and(|&i| genes[i as usize].sender() < mate) {
                 next += 1;
             }
-            let msg = by_sender.get(next).copied().filter(|&i| genes[i as usize].from == mate);
+            let msg = by_sender.get(next).copied().filter(|&i| genes[i as usize].sender() == mate);
             match msg.map(|i| (i, &genes[i as usize])) {
-                Some((i, g)) if g.genome.len() <= self.cfg.ge.max_genome_length && g.fitness.is_finite() => {
+                Some((i, g)) if g.genome().len() <= self.cfg.ge.max_genome_length && g.fitness().is_finite() => {
                     // Injected receiver-side loss.
                     if self.regime.gene_loss > 0.0 && self.rng_loss.random::<f64>() < self.regime.gene_loss {
                         *lost += 1;
@@ -501,7 +591,7 @@ impl Learner {
         let mut self_done = false;
         let ip = self.regime.ip;
         for &i in arrived.iter() {
-            if !self_done && self.id < genes[i as usize].from {
+            if !self_done && self.id < genes[i as usize].sender() {
                 self_done = true;
                 if self.rng_ip.random::<f64>() < ip {
                     survivors.push(None);
@@ -528,7 +618,7 @@ impl Learner {
                             }
                             Received::Claimed => Joining::Gene(i),
                             Received::Mapped(mut ind) => {
-                                ind.fitness = g.fitness;
+                                ind.fitness = g.fitness();
                                 mapped.push(ind);
                                 Joining::Mapped(mapped.len() - 1)
                             }
@@ -542,7 +632,7 @@ impl Learner {
     }
 
     /// Put this step's joining survivors in the pool for good (the pool stays below ST).
-    fn keep_joining(&mut self, genes: &[GeneMsg], cache: &mut GeneCache) {
+    fn keep_joining<G: Gene>(&mut self, genes: &[G], cache: &mut GeneCache) {
         let LtScratch { joining, mapped, .. } = &mut cache.lt;
         for j in joining.drain(..) {
             let ind = match j {
@@ -556,7 +646,7 @@ impl Learner {
 
     /// Genetic step on the pool and this step's joining survivors, in that order, then
     /// adopt the winner (§5.6, §6.2 step 8).
-    fn evolve(&mut self, genes: &[GeneMsg], cache: &mut GeneCache) {
+    fn evolve<G: Gene>(&mut self, genes: &[G], cache: &mut GeneCache) {
         let GeneCache { lt, workspace, .. } = cache;
         let mut pool: Vec<Candidate> = Vec::with_capacity(self.pool.len() + lt.joining.len());
         pool.extend(self.pool.iter().map(Candidate::of));

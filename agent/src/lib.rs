@@ -7,14 +7,17 @@
 //! - [`bt`]: the behaviour-tree engine (py_trees semantics, stale statuses included).
 //! - [`leaves`]: conditions, primitive and composite actions.
 //! - [`view`]: an agent's local world model, blackboard and static memory for one tick.
+//! - [`inbox`]: the genes an agent process received from other processes, decoded into
+//!   one reused buffer and lent to its learners by cell.
 //! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness),
 //!   and the per-process [`GeneCache`] of received genes' mappings (which also holds the
 //!   genetic step's scratch buffers and the behaviour trees of adopted phenotypes).
 pub mod bt;
 pub mod ge;
 pub mod grammars;
+pub mod inbox;
 pub mod learner;
 pub mod leaves;
 pub mod view;
 
-pub use learner::{FitnessVariant, GeneCache, Learner, LearnerConfig};
+pub use learner::{FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig};

@@ -170,6 +170,18 @@ pub fn genome_bytes_ok(bytes: &[u8]) -> bool {
     codons::well_formed(bytes)
 }
 
+/// Append the codons of a genome on the wire (see [`GeneMsg::genome`]) to `out`: what
+/// a receiver that keeps many genomes in one buffer decodes with. False, with `out`
+/// untouched, when the bytes are not a well-formed genome.
+pub fn genome_codons_into(bytes: &[u8], out: &mut Vec<u32>) -> bool {
+    match bytes.split_first() {
+        _ if !codons::well_formed(bytes) => return false,
+        Some((2, rest)) => out.extend(rest.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]]) as u32)),
+        _ => out.extend(bytes[1..].chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))),
+    }
+    true
+}
+
 mod codons {
     use serde::de::{Deserializer, Error, Visitor};
     use serde::Serializer;
@@ -222,13 +234,11 @@ mod codons {
         }
 
         fn visit_bytes<E: Error>(self, b: &[u8]) -> Result<Arc<[u32]>, E> {
-            if !well_formed(b) {
+            let mut codons = Vec::with_capacity(b.len() / 2);
+            if !super::genome_codons_into(b, &mut codons) {
                 return Err(E::custom("malformed genome (width byte 2 or 4, whole codons)"));
             }
-            match b.split_first() {
-                Some((2, rest)) => Ok(rest.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]]) as u32).collect()),
-                _ => Ok(b[1..].chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()),
-            }
+            Ok(codons.into())
         }
     }
 

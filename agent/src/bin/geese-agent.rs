@@ -31,11 +31,12 @@
 use anyhow::{bail, Context, Result};
 use clap::{Parser, ValueEnum};
 use geese_agent::ge::Grammar;
-use geese_agent::{GeneCache, Learner, LearnerConfig};
+use geese_agent::inbox::{CellGenes, Inbox};
+use geese_agent::{GeneCache, GeneRef, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest_sized, pack, unpack, GeneBatch, GeneBatchCell, GeneBatchRef, GeneBundle, HostCounters, HostGenes,
-    HostPercepts, IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
+    loss_draw, nest_sized, pack, unpack, GeneBatchCell, GeneBatchHead, GeneBatchRef, GeneBundle, HostCounters,
+    HostGenes, HostPercepts, IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
@@ -232,7 +233,7 @@ impl Cell for Percept {
         self.cell
     }
 }
-impl Cell for GeneBatch {
+impl Cell for GeneBatchHead<'_> {
     fn cell(&self) -> u32 {
         self.cell
     }
@@ -261,13 +262,6 @@ struct CellSubs {
 /// often step back and forth across a cell border).
 const KEEP_STEPS: u64 = 2;
 
-/// A received gene batch, checked.
-struct Received {
-    step: u64,
-    cell: u32,
-    batch: GeneBatch,
-}
-
 struct Host {
     session: Session,
     run: String,
@@ -295,14 +289,13 @@ struct Host {
     percepts: HashMap<u32, Percept>,
     /// Own agent → the cell whose percept shows its centre, this step.
     found: HashMap<AgentId, u32>,
-    genes: Vec<Received>,
+    /// Genes received from other processes, for steps not yet finished.
+    inbox: Inbox,
     /// (step, cell) of every gene aggregate received from the world.
     heard: HashSet<(u64, u32)>,
     /// Where received packs are unpacked (kept between messages).
     unpacked: Vec<u8>,
-    /// Each cell's genes of the step being finished, own then received. Kept, emptied,
-    /// between steps: grown afresh each step from the batches of up to nine processes,
-    /// its ~100 vectors were reallocated about five times each.
+    /// Each cell's own genes of the step being finished. Kept, emptied, between steps.
     cell_genes: HashMap<u32, Vec<GeneMsg>>,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
@@ -400,7 +393,7 @@ impl Host {
             collect_deadline: None,
             percepts: HashMap::new(),
             found: HashMap::new(),
-            genes: Vec::new(),
+            inbox: Inbox::default(),
             heard: HashSet::new(),
             unpacked: Vec::new(),
             cell_genes: HashMap::new(),
@@ -583,7 +576,7 @@ impl Host {
                 }
                 Err(_) => self.counters.hostile += 1,
             },
-            Event::Genes { cell, bytes } => match decode::<GeneBatch>(&bytes) {
+            Event::Genes { cell, bytes } => match decode::<GeneBatchHead>(&bytes) {
                 // A cell's own topic carries its whole aggregate: the cell is complete.
                 Ok(b) if b.cell == cell => {
                     if b.step > self.done {
@@ -695,13 +688,9 @@ impl Host {
 
     /// File a batch of genes of one cell (the cell's aggregate, or one process's batch
     /// of it; whether the cell is complete is said apart).
-    fn take_genes(&mut self, b: GeneBatch) {
-        if !b.genes.iter().all(|g| g.step == b.step) {
+    fn take_genes(&mut self, b: GeneBatchHead) {
+        if b.step > self.done && !self.inbox.file(&b) {
             self.counters.hostile += 1;
-            return;
-        }
-        if b.step > self.done {
-            self.genes.push(Received { step: b.step, cell: b.cell, batch: b });
         }
     }
 
@@ -870,30 +859,25 @@ impl Host {
         let finish_from = PhaseClock::lap(&mut self.clock.gene_wait, genes_sent);
         // 3. Finish: act, learn, intents.
         let mut intents: Vec<Intent> = Vec::with_capacity(active.len());
-        // Each cell's genes: our own, then the others' as they arrived, moved rather than
-        // cloned (a clone touches every genome's reference count: ~900 cache lines of
-        // other processes' genes per step).
+        // Each cell's genes: our own, then the others' as they arrived, lent from the
+        // inbox; in sender order once per cell, so that each learner's own check finds
+        // them sorted.
         let range = self.range;
-        let mut cell_genes = local;
-        for r in self.genes.iter_mut().filter(|r| r.step == t) {
-            let remote = std::mem::take(&mut r.batch.genes).into_iter().filter(|g| !range.contains(g.from));
-            cell_genes.entry(r.cell).or_default().extend(remote);
+        let mut lent = Vec::with_capacity(self.inbox.len() + own.len());
+        for (&c, genes) in &local {
+            lent.extend(genes.iter().map(|g| (c, GeneRef::of(g))));
         }
-        // In sender order once per cell (stable: duplicates keep their arrival order), so
-        // that each learner's own check finds it sorted.
-        for v in cell_genes.values_mut() {
-            v.sort_by_key(|g| g.from);
-        }
-        let none: Vec<GeneMsg> = Vec::new();
+        self.inbox.lend(t, |from| range.contains(from), &mut lent);
+        let cell_genes = CellGenes::new(lent);
         for &(id, c) in &active {
-            let k = self.idx(id);
-            let genes = cell_genes.get(&c).unwrap_or(&none);
-            intents.push(self.learners[k].finish_step(genes, &mut self.gene_cache));
+            let k = (id - range.first) as usize;
+            intents.push(self.learners[k].finish_step(cell_genes.of(c), &mut self.gene_cache));
         }
-        for v in cell_genes.values_mut() {
+        drop(cell_genes);
+        for v in local.values_mut() {
             v.clear();
         }
-        self.cell_genes = cell_genes;
+        self.cell_genes = local;
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
             let mut next = self.own_cells();
@@ -920,7 +904,7 @@ impl Host {
         self.collect_deadline = None;
         self.percepts.clear();
         self.found.clear();
-        self.genes.retain(|r| r.step > t);
+        self.inbox.retire(t);
         self.heard.retain(|&(s, _)| s > t);
         Ok(())
     }

@@ -301,7 +301,11 @@ impl Member for Individual {
 /// individual only if it wins ([`Member::take`]).
 #[derive(Clone, Copy, Debug)]
 pub struct Candidate<'a> {
-    pub genome: &'a Arc<[u32]>,
+    pub genome: &'a [u32],
+    /// The codons' shared allocation, when they have one: a winner takes a reference to
+    /// it rather than a copy. Genes an agent process received are read from its inbox
+    /// (`geese-agent`), and copied only if one wins.
+    pub shared: Option<&'a Arc<[u32]>>,
     pub phenotype: Option<&'a Arc<str>>,
     pub valid: bool,
     pub used_codons: usize,
@@ -314,6 +318,7 @@ impl<'a> Candidate<'a> {
     pub fn of(ind: &'a Individual) -> Candidate<'a> {
         Candidate {
             genome: &ind.genome,
+            shared: Some(&ind.genome),
             phenotype: ind.phenotype.as_ref(),
             valid: ind.valid,
             used_codons: ind.used_codons,
@@ -335,7 +340,7 @@ impl Member for Candidate<'_> {
     }
     fn take(&mut self) -> Individual {
         Individual {
-            genome: self.genome.clone(),
+            genome: self.shared.map_or_else(|| Arc::from(self.genome), Arc::clone),
             valid: self.valid,
             phenotype: self.phenotype.cloned(),
             used_codons: self.used_codons,
