@@ -10,7 +10,6 @@
 use crate::learner::GeneRef;
 use geese_proto::net::GeneBatchHead;
 use geese_proto::{genome_codons_into, AgentId, GeneMapping};
-use std::collections::HashMap;
 
 /// One received gene: its fields, and where its codons are in [`Inbox::codons`].
 #[derive(Clone, Copy, Debug)]
@@ -114,22 +113,36 @@ impl Inbox {
 /// came first of one sender (a learner's own gene, then as they arrived) stays first.
 pub struct CellGenes<'a> {
     genes: Vec<GeneRef<'a>>,
-    spans: HashMap<u32, (usize, usize)>,
+    /// (cell, start, end) in `genes`, by cell.
+    spans: Vec<(u32, usize, usize)>,
 }
 
 impl<'a> CellGenes<'a> {
-    pub fn new(mut lent: Vec<(u32, GeneRef<'a>)>) -> CellGenes<'a> {
-        lent.sort_by_key(|(cell, g)| (*cell, g.from));
-        let mut spans: HashMap<u32, (usize, usize)> = HashMap::new();
-        for (i, (cell, _)) in lent.iter().enumerate() {
-            spans.entry(*cell).and_modify(|s| s.1 = i + 1).or_insert((i, i + 1));
+    pub fn new(lent: Vec<(u32, GeneRef<'a>)>) -> CellGenes<'a> {
+        // Sorting (cell, sender, arrival) keys rather than the genes themselves: a tenth
+        // of the bytes to move.
+        let mut order: Vec<(u64, u32)> =
+            lent.iter().enumerate().map(|(i, (c, g))| ((u64::from(*c) << 32) | u64::from(g.from), i as u32)).collect();
+        order.sort_unstable();
+        let mut genes = Vec::with_capacity(lent.len());
+        let mut spans: Vec<(u32, usize, usize)> = Vec::new();
+        for (key, i) in order {
+            let cell = (key >> 32) as u32;
+            match spans.last_mut() {
+                Some(s) if s.0 == cell => s.2 += 1,
+                _ => spans.push((cell, genes.len(), genes.len() + 1)),
+            }
+            genes.push(lent[i as usize].1);
         }
-        CellGenes { genes: lent.into_iter().map(|(_, g)| g).collect(), spans }
+        CellGenes { genes, spans }
     }
 
     /// The genes of `cell` (none if it has none).
     pub fn of(&self, cell: u32) -> &[GeneRef<'a>] {
-        self.spans.get(&cell).map_or(&[], |&(a, b)| &self.genes[a..b])
+        match self.spans.binary_search_by_key(&cell, |s| s.0) {
+            Ok(k) => &self.genes[self.spans[k].1..self.spans[k].2],
+            Err(_) => &[],
+        }
     }
 }
 
@@ -167,17 +180,19 @@ mod tests {
         let a = batch_bytes(5, 2, &[gene(5, 9, &[1, 2, 3]), gene(5, 4, &wide)]);
         let b = batch_bytes(5, 1, &[gene(5, 7, &[8])]);
         let later = batch_bytes(6, 1, &[gene(6, 7, &[5, 5])]);
-        for bytes in [&a, &b, &later] {
+        // A second gene of one sender in one cell stays behind the first.
+        let again = batch_bytes(5, 1, &[gene(5, 7, &[9]), gene(5, 6, &[6])]);
+        for bytes in [&a, &b, &later, &again] {
             assert!(inbox.file(&head(bytes)));
         }
-        assert_eq!(inbox.len(), 4);
+        assert_eq!(inbox.len(), 6);
         let own = gene(5, 3, &[42]);
         let mut lent = vec![(2, GeneRef::of(&own))];
         inbox.lend(5, |from| from == 9, &mut lent);
         let cells = CellGenes::new(lent);
         let of = |c| cells.of(c).iter().map(|g| (g.from, g.genome.to_vec())).collect::<Vec<_>>();
         assert_eq!(of(2), vec![(3, vec![42]), (4, wide.to_vec())]);
-        assert_eq!(of(1), vec![(7, vec![8])]);
+        assert_eq!(of(1), vec![(6, vec![6]), (7, vec![8]), (7, vec![9])]);
         assert!(of(3).is_empty());
         assert!(cells.of(2)[0].shared.is_some() && cells.of(2)[1].shared.is_none());
         drop(cells);
