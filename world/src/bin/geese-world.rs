@@ -22,6 +22,10 @@ use geese_proto::zenoh_bus::{self, CommonArgs};
 use geese_proto::{decode, encode, encode_sized, Control, Intent};
 use geese_world::{World, WorldConfig};
 use std::collections::{BTreeMap, HashMap};
+
+/// Maps keyed by cell, hashed with foldhash: the world fills and reads them for every
+/// shared cell and every batch between two steps, when every agent process waits on it.
+type CellMap<V> = HashMap<u32, V, foldhash::fast::FixedState>;
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -128,7 +132,7 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         run: run.clone(),
         geom: world.geometry(),
         step: 0,
-        cells: HashMap::new(),
+        cells: CellMap::default(),
         hosts: HashMap::new(),
         hostile: 0,
         per_cell: true,
@@ -365,7 +369,7 @@ struct GeneHub {
     run: String,
     geom: geese_proto::Geometry,
     step: u64,
-    cells: HashMap<u32, CellAgg>,
+    cells: CellMap<CellAgg>,
     /// What each hosting process sharing a cell this step has still to be sent.
     hosts: HashMap<AgentRange, HostOut>,
     hostile: u32,
@@ -428,7 +432,7 @@ struct HostOut {
 impl GeneHub {
     /// Open step `step`: `cells` are the shared cells with the processes centred in
     /// each; `hosting` the processes served with [`HostGenes`].
-    fn begin(&mut self, step: u64, cells: HashMap<u32, Vec<AgentRange>>, per_cell: bool, hosting: &[AgentRange]) {
+    fn begin(&mut self, step: u64, cells: CellMap<Vec<AgentRange>>, per_cell: bool, hosting: &[AgentRange]) {
         self.step = step;
         self.per_cell = per_cell;
         self.hostile = 0;
@@ -800,10 +804,10 @@ impl<'a> Server<'a> {
         // one; a message of their own for every hosting process.
         let per_cell = !self.narrow.is_empty();
         let hosting = self.hosting();
+        let hosts: Vec<AgentRange> = self.hosts.keys().copied().collect();
         // Open the gathering before anything goes out: fast answers must find it open.
         {
             let bare = self.spec.bare;
-            let hosts: Vec<AgentRange> = self.hosts.keys().copied().collect();
             let bodies = self.world.bodies();
             let expected = |i: usize| {
                 if bare {
@@ -818,14 +822,21 @@ impl<'a> Server<'a> {
         if !self.spec.bare {
             // Cells whose centred live agents belong to more than one process: their genes
             // go through the hub (lateral transfer on only).
-            let mut shared: HashMap<u32, Vec<AgentRange>> = HashMap::new();
+            let mut shared: CellMap<Vec<AgentRange>> = CellMap::default();
             if self.world.regime().lateral_transfer {
                 let g = self.world.geometry();
+                // Bodies come in id order and a process speaks for contiguous ids, so a
+                // body's process is mostly the previous body's (the first in order that
+                // contains its id, either way).
+                let mut owner: Option<AgentRange> = None;
                 for b in self.world.bodies().iter().filter(|b| b.live) {
-                    if let Some(r) = self.hosts.keys().find(|r| r.contains(b.id)) {
+                    if !owner.is_some_and(|r| r.contains(b.id)) {
+                        owner = hosts.iter().find(|r| r.contains(b.id)).copied();
+                    }
+                    if let Some(r) = owner {
                         let v = shared.entry(g.cell_of(b.pos)).or_default();
-                        if !v.contains(r) {
-                            v.push(*r);
+                        if !v.contains(&r) {
+                            v.push(r);
                         }
                     }
                 }
@@ -857,7 +868,8 @@ impl<'a> Server<'a> {
             // Every hosting process: the percepts of its live agents' cells, each cell
             // encoded once.
             if !hosting.is_empty() {
-                let mut nested: HashMap<u32, Vec<u8>> = HashMap::with_capacity(percepts.len());
+                let mut nested: CellMap<Vec<u8>> =
+                    CellMap::with_capacity_and_hasher(percepts.len(), Default::default());
                 for p in &percepts {
                     nested.insert(p.cell, nest(p)?);
                 }
