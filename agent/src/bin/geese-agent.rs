@@ -10,7 +10,9 @@
 //!    the gene deadline, for the world's batches of the cells with expected cell-mates
 //!    of other processes;
 //! 3. `finish_step` with the genes of the cell (the learner sorts candidates by id), and
-//!    publish all intents as one [`IntentBatch`] on `agent/<ids>/action`.
+//!    publish all intents as one [`IntentBatch`] on `agent/<ids>/action`. Received
+//!    genes wait in an [`Inbox`] (one buffer for every genome of the step), which lends
+//!    them to the learners cell by cell ([`CellGenes`]).
 //!
 //! Before publishing its intents the process subscribes to the percept and gene topics
 //! of every cell its agents may be in next step (the current cell and the cells of their
