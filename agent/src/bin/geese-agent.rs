@@ -6,7 +6,7 @@
 //! 1. read each own agent's cell percept (subscribed in advance, see below);
 //! 2. `begin_step`, then publish the process's genes of each cell — only of cells where
 //!    an agent of another process is (own cell-mates get them in memory) — as one
-//!    [`GeneBundle`] of per-cell [`GeneBatch`]es, LZ4-packed, on `agent/<ids>/genes`, and wait, up to
+//!    [`GeneBundle`] of per-cell [`GeneBatch`](geese_proto::net::GeneBatch)es, LZ4-packed, on `agent/<ids>/genes`, and wait, up to
 //!    the gene deadline, for the world's batches of the cells with expected cell-mates
 //!    of other processes;
 //! 3. `finish_step` with the genes of the cell (the learner sorts candidates by id), and
@@ -69,7 +69,7 @@ enum SubscribeArg {
 struct Args {
     #[command(flatten)]
     zenoh: CommonArgs,
-    /// Run name (the <run> of every key).
+    /// Run name (the `<run>` of every key).
     #[arg(long, default_value = "geese")]
     run: String,
     /// Id of the (first) agent of this process.
