@@ -137,8 +137,9 @@ pub struct GeneMsg {
     pub step: u64,
     pub from: AgentId,
     /// Shared, not copied: in one process every cell-mate (and the sender's own
-    /// individual) holds the same codons, and the receivers' gene cache recognises a
-    /// genome it mapped by address. On the wire it is one byte string (a width byte, then the codons).
+    /// individual) holds the same codons. On the wire it is one byte string (a width
+    /// byte, then the codons); an agent process decodes the genomes it receives into one
+    /// buffer instead ([`genome_codons_into`]).
     #[serde(serialize_with = "codons::serialize", deserialize_with = "codons::deserialize")]
     pub genome: std::sync::Arc<[u32]>,
     pub fitness: f64,

@@ -22,10 +22,6 @@ use geese_proto::zenoh_bus::{self, CommonArgs};
 use geese_proto::{decode, encode, encode_sized, Control, Intent};
 use geese_world::{World, WorldConfig};
 use std::collections::{BTreeMap, HashMap};
-
-/// Maps keyed by cell, hashed with foldhash: the world fills and reads them for every
-/// shared cell and every batch between two steps, when every agent process waits on it.
-type CellMap<V> = HashMap<u32, V, foldhash::fast::FixedState>;
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -35,6 +31,10 @@ use tokio::sync::Notify;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
 use zenoh::{Session, Wait};
+
+/// Maps keyed by cell, hashed with foldhash: the world fills and reads them for every
+/// shared cell and every batch between two steps, when every agent process waits on it.
+type CellMap<V> = HashMap<u32, V, foldhash::fast::FixedState>;
 
 #[derive(Parser)]
 #[command(name = "geese-world", version, about = "GEESE world server (Zenoh)")]
