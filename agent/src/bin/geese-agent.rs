@@ -302,8 +302,6 @@ struct Host {
     heard: HashSet<(u64, u32), FixedState>,
     /// Where received packs are unpacked (kept between messages).
     unpacked: Vec<u8>,
-    /// Each cell's own genes of the step being finished. Kept, emptied, between steps.
-    cell_genes: FastMap<u32, Vec<GeneMsg>>,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
@@ -403,7 +401,6 @@ impl Host {
             inbox: Inbox::default(),
             heard: HashSet::default(),
             unpacked: Vec::new(),
-            cell_genes: FastMap::default(),
             present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
@@ -754,8 +751,8 @@ impl Host {
         let p_loss = self.info.spec.loss.percept;
         let mut idle: Vec<AgentId> = Vec::new();
         let mut active: Vec<(AgentId, u32)> = Vec::new();
-        // Each cell's genes, own first (kept between steps, emptied: see `cell_genes`).
-        let mut local = std::mem::take(&mut self.cell_genes);
+        // Each cell's own genes.
+        let mut local: FastMap<u32, Vec<GeneMsg>> = FastMap::default();
         let mut absent: FastMap<u32, Vec<AgentId>> = FastMap::default();
         for &id in &own {
             let k = self.idx(id);
@@ -783,8 +780,7 @@ impl Host {
             active.push((id, c));
         }
         // Publish our genes in cells where an agent of another process has its centre.
-        let mut out_cells: Vec<u32> =
-            local.iter().filter(|(_, v)| !v.is_empty()).map(|(&c, _)| c).chain(absent.keys().copied()).collect();
+        let mut out_cells: Vec<u32> = local.keys().chain(absent.keys()).copied().collect();
         out_cells.sort_unstable();
         out_cells.dedup();
         let mut nested = Vec::new();
@@ -877,14 +873,10 @@ impl Host {
         self.inbox.lend(t, |from| range.contains(from), &mut lent);
         let cell_genes = CellGenes::new(lent);
         for &(id, c) in &active {
-            let k = (id - range.first) as usize;
+            let k = self.idx(id);
             intents.push(self.learners[k].finish_step(cell_genes.of(c), &mut self.gene_cache));
         }
         drop(cell_genes);
-        for v in local.values_mut() {
-            v.clear();
-        }
-        self.cell_genes = local;
         // Subscriptions for step t+1: where each agent is, and where its moves lead.
         if !self.wide {
             let mut next = self.own_cells();
