@@ -40,11 +40,20 @@ impl Inbox {
     /// File a batch of one cell's genes. False, with nothing filed, when a gene is of
     /// another step than the batch or its genome is malformed (the batch is hostile).
     pub fn file(&mut self, batch: &GeneBatchHead<'_>) -> bool {
+        self.file_by_sender(batch, |_| Some(batch.cell))
+    }
+
+    /// File a batch whose genes go to the cells `cell_of` names for their senders (a
+    /// batch sent ahead, [`geese_proto::net::AHEAD_CELL`]); the genes of senders it
+    /// names none for are skipped, their genomes not decoded. False, with nothing filed,
+    /// as [`Inbox::file`].
+    pub fn file_by_sender(&mut self, batch: &GeneBatchHead<'_>, cell_of: impl Fn(AgentId) -> Option<u32>) -> bool {
         if batch.genes.iter().any(|g| g.step != batch.step) {
             return false;
         }
         let (codons, slots) = (self.codons.len(), self.slots.len());
         for g in &batch.genes {
+            let Some(cell) = cell_of(g.from) else { continue };
             let start = self.codons.len();
             let fits = u32::try_from(start).is_ok();
             if !fits || !genome_codons_into(g.genome.0, &mut self.codons) {
@@ -54,7 +63,7 @@ impl Inbox {
             }
             self.slots.push(Slot {
                 step: g.step,
-                cell: batch.cell,
+                cell,
                 from: g.from,
                 fitness: g.fitness,
                 mapping: g.mapping,
@@ -202,6 +211,31 @@ mod tests {
         inbox.lend(6, |_| false, &mut lent);
         assert_eq!(lent.len(), 1);
         assert_eq!((lent[0].0, lent[0].1.genome), (1, &[5, 5][..]));
+    }
+
+    #[test]
+    fn a_batch_sent_ahead_is_filed_by_its_senders_cells_and_the_others_skipped() {
+        let mut inbox = Inbox::default();
+        let ahead = geese_proto::net::AHEAD_CELL;
+        let genes = [gene(5, 1, &[1]), gene(5, 2, &[2, 2]), gene(5, 3, &[3])];
+        let bytes = batch_bytes(5, ahead, &genes);
+        // Sender 2 is in no cell of ours: skipped, and its genome (however bad) unread.
+        let mut bad = bytes.clone();
+        let at = bad.windows(5).position(|w| w == [2, 2, 0, 2, 0]).expect("genome of sender 2");
+        bad[at] = 3;
+        let cell_of = |from: AgentId| match from {
+            1 => Some(7),
+            3 => Some(8),
+            _ => None,
+        };
+        assert!(inbox.file_by_sender(&head(&bad), cell_of));
+        let mut lent = Vec::new();
+        inbox.lend(5, |_| false, &mut lent);
+        let got: Vec<(u32, AgentId, Vec<u32>)> = lent.iter().map(|(c, g)| (*c, g.from, g.genome.to_vec())).collect();
+        assert_eq!(got, vec![(7, 1, vec![1]), (8, 3, vec![3])]);
+        // A bad genome of a sender it needs files nothing.
+        assert!(!inbox.file_by_sender(&head(&bad), |_| Some(7)));
+        assert_eq!(inbox.len(), 2);
     }
 
     #[test]

@@ -476,9 +476,16 @@ impl Learner {
         if !self.expected.is_sorted() {
             self.expected.sort_unstable();
         }
+        Some(self.offer(self.step))
+    }
+
+    /// The gene this agent offers its cell-mates at `step`, if it takes part in it: its
+    /// gene as it stands. Nothing in a step's percept changes it, so a process can send
+    /// it ahead, as soon as the step before has finished.
+    pub fn offer(&self, step: u64) -> GeneMsg {
         let g = &self.gene;
         let mapping = GeneMapping { valid: g.valid(), used_codons: g.used_codons as u32, depth: g.depth as u32 };
-        Some(GeneMsg { step: self.step, from: self.id, genome: g.genome.clone(), fitness: g.fitness, mapping })
+        GeneMsg { step, from: self.id, genome: g.genome.clone(), fitness: g.fitness, mapping }
     }
 
     /// Cell-mates whose genes this step should bring (sorted by id).

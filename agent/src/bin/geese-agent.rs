@@ -39,7 +39,7 @@ use geese_agent::{GeneCache, GeneRef, Learner, LearnerConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
     loss_draw, nest_sized, pack, unpack, GeneBatchCell, GeneBatchHead, GeneBatchRef, GeneBundle, HostCounters,
-    HostGenes, HostPercepts, IntentBatch, Raw, RunInfo, Tick, LOSS_SALT_PERCEPT, NO_CELL,
+    HostGenes, HostPercepts, IntentBatch, Raw, RunInfo, Tick, AHEAD_CELL, LOSS_SALT_PERCEPT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
@@ -302,6 +302,11 @@ struct Host {
     heard: HashSet<(u64, u32), FixedState>,
     /// Where received packs are unpacked (kept between messages).
     unpacked: Vec<u8>,
+    /// The last step whose genes came with its percepts (sent ahead).
+    ahead_step: u64,
+    /// Centre cell of each agent of another process in a cell of ours (by agent id,
+    /// `NO_CELL` elsewhere), while genes sent ahead are filed.
+    sender_cell: Vec<u32>,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
@@ -401,6 +406,8 @@ impl Host {
             inbox: Inbox::default(),
             heard: HashSet::default(),
             unpacked: Vec::new(),
+            ahead_step: 0,
+            sender_cell: Vec::new(),
             present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
@@ -577,6 +584,11 @@ impl Host {
                 Ok(b) => {
                     let percepts = self.open_each(&b.percepts);
                     self.take_each(percepts, |p| p.step == b.step, Self::take_percept);
+                    if let Some(packs) = &b.genes {
+                        if b.step == self.collecting && b.step > self.done {
+                            self.take_ahead(b.step, packs);
+                        }
+                    }
                 }
                 Err(_) => self.counters.hostile += 1,
             },
@@ -690,6 +702,73 @@ impl Host {
         self.percepts.insert(cell, p);
     }
 
+    /// File the genes of step `step` that came with its percepts: the other processes'
+    /// packs, each of one batch sent ahead ([`AHEAD_CELL`]). A gene goes to the cell
+    /// its sender's centre is in by this step's percepts, if that is a cell of ours; the
+    /// others are skipped unread.
+    fn take_ahead(&mut self, step: u64, packs: &[Raw]) {
+        self.ahead_step = step;
+        let n = self.info.spec.agents as usize;
+        if self.sender_cell.len() != n {
+            self.sender_cell = vec![NO_CELL; n];
+        }
+        let (range, geom) = (self.range, self.geom);
+        for (&c, p) in &self.percepts {
+            for a in p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c) {
+                if let Some(x) = self.sender_cell.get_mut(a.id as usize) {
+                    *x = c;
+                }
+            }
+        }
+        let mut scratch = std::mem::take(&mut self.unpacked);
+        for p in packs {
+            let Ok(nested) = unpack(p.0, &mut scratch) else {
+                self.counters.hostile += 1;
+                continue;
+            };
+            for raw in nested {
+                let cells = &self.sender_cell;
+                let cell_of = |from: AgentId| cells.get(from as usize).copied().filter(|&c| c != NO_CELL);
+                let filed = match raw.open::<GeneBatchHead>() {
+                    Ok(b) if b.step == step && b.cell == AHEAD_CELL => self.inbox.file_by_sender(&b, cell_of),
+                    _ => false,
+                };
+                if !filed {
+                    self.counters.hostile += 1;
+                }
+            }
+        }
+        self.unpacked = scratch;
+        for p in self.percepts.values() {
+            for a in &p.agents {
+                if let Some(x) = self.sender_cell.get_mut(a.id as usize) {
+                    *x = NO_CELL;
+                }
+            }
+        }
+    }
+
+    /// Publish, ahead, the genes our agents offer at step `step` ([`AHEAD_CELL`]): each
+    /// agent's gene as it stands, except those of agents whose percept of that step the
+    /// injected loss will drop (they take no part in it). The world files them and
+    /// sends them on with the percepts of `step`.
+    async fn publish_ahead(&mut self, step: u64) -> Result<()> {
+        let p_loss = self.info.spec.loss.percept;
+        let genes: Vec<GeneMsg> = (0..self.learners.len())
+            .filter(|&k| p_loss <= 0.0 || loss_draw(self.loss_streams[k], step, 0) >= p_loss)
+            .map(|k| self.learners[k].offer(step))
+            .collect();
+        let batch = GeneBatchRef { step, cell: AHEAD_CELL, genes: &genes, absent: &[] };
+        let nested = nest_sized(&batch, batch.size_hint())?;
+        let packed = pack(&[Raw(&nested)])?;
+        let bytes = encode_sized(&GeneBundle { step, packed: Raw(&packed) }, packed.len() + 16)?;
+        self.session
+            .put(keys::agents_genes(&self.run, self.range), bytes)
+            .congestion_control(CongestionControl::Block)
+            .await
+            .map_err(zerr)
+    }
+
     /// File a batch of genes of one cell (the cell's aggregate, or one process's batch
     /// of it; whether the cell is complete is said apart).
     fn take_genes(&mut self, b: GeneBatchHead) {
@@ -779,8 +858,12 @@ impl Host {
             }
             active.push((id, c));
         }
+        // The other processes' genes came with the percepts (sent ahead), and ours went
+        // ahead too: nothing to publish or wait for.
+        let ahead = self.ahead_step == t;
         // Publish our genes in cells where an agent of another process has its centre.
-        let mut out_cells: Vec<u32> = local.keys().chain(absent.keys()).copied().collect();
+        let mut out_cells: Vec<u32> =
+            if ahead { Vec::new() } else { local.keys().chain(absent.keys()).copied().collect() };
         out_cells.sort_unstable();
         out_cells.dedup();
         let mut nested = Vec::new();
@@ -821,7 +904,7 @@ impl Host {
         // another own agent's only by own ids), so one agent's list per cell will do.
         let mut wait_for: FastMap<u32, Vec<AgentId>> = FastMap::default();
         let (range, geom) = (self.range, self.geom);
-        for &(id, c) in &active {
+        for &(id, c) in active.iter().filter(|_| !ahead) {
             if wait_for.contains_key(&c) {
                 continue;
             }
@@ -895,6 +978,10 @@ impl Host {
             self.subs.retain(|_, s| s.wanted + KEEP_STEPS > t);
         }
         let batch = IntentBatch { step: t, intents, idle, counters: std::mem::take(&mut self.counters) };
+        // Our genes for the next step, before the intents that let the world start it.
+        if self.wide && t < self.info.spec.steps {
+            self.publish_ahead(t + 1).await?;
+        }
         tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
         self.publish_intents(batch).await?;
         self.clock.intents_sent = Some(PhaseClock::lap(&mut self.clock.finish, finish_from));

@@ -119,16 +119,52 @@ fn hosted_agents_and_perturbations_equal_in_process() {
     ];
     let expected = in_process(&cfg);
     assert!(expected.last().is_some_and(|r| r.live_agents == 18));
-    let (got, pids) = distributed(&cfg, &options(3, Some(8)));
+    // Processes that read no cell topic (the world sends each its cells' percepts):
+    // from step 2 on, the genes of a step went ahead with the intents of the step
+    // before, except while lateral transfer was off.
+    let mut hosting = options(3, Some(8));
+    hosting.subscribe = Some("all".into());
+    let (got, pids) = distributed(&cfg, &hosting);
     assert_eq!(expected, step_reports(&got));
-    // Two processes that read no cell topic (the world sends each its cells' percepts
-    // and its shared cells' genes) and one that reads its cells: same trajectory.
+    let ahead = got.iter().filter(|r| r.net.genes_ahead == 3).count();
+    assert!(ahead >= 250, "genes went ahead in only {ahead} of 300 steps");
+    // Two such processes and one that reads its cells: the genes of a step go through
+    // the world during the step (per cell, and to each hosting process its shared
+    // cells'). Same trajectory.
     let mut wide = options(3, Some(8));
     wide.subscribe = Some("all,cells".into());
     let (got_wide, pids_wide) = distributed(&cfg, &wide);
     assert_eq!(expected, step_reports(&got_wide));
+    assert!(got_wide.iter().all(|r| r.net.genes_ahead == 0), "genes went ahead past a per-cell reader");
     assert_all_gone(&pids);
     assert_all_gone(&pids_wide);
+}
+
+#[test]
+#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
+fn genes_sent_ahead_equal_genes_sent_during_the_step_under_loss() {
+    // An agent whose percept is dropped offers no gene that step. Its process knows so
+    // a step early, when it sends the genes ahead (the loss draws are counter-based):
+    // with every kind of loss, the trajectory is the one of genes sent during the step
+    // (forced by one process that reads its cells).
+    let mut cfg = config(24, 200, 4, Layout::Paper);
+    cfg.world.grid = 5;
+    cfg.gene_loss = 0.3;
+    let mut ahead = options(3, Some(8));
+    ahead.subscribe = Some("all".into());
+    ahead.loss = LossRates { intent: 0.1, percept: 0.2 };
+    let (a, pids_a) = distributed(&cfg, &ahead);
+    let mut during = ahead.clone();
+    during.subscribe = Some("all,all,cells".into());
+    let (b, pids_b) = distributed(&cfg, &during);
+    assert!(a.iter().skip(1).all(|r| r.net.genes_ahead == 3), "a step's genes did not go ahead");
+    assert!(b.iter().all(|r| r.net.genes_ahead == 0));
+    let lost = |r: &[NetReport]| r.iter().map(|r| r.net.percepts_lost).sum::<u32>();
+    assert!(lost(&a) > 200, "percepts lost: {}", lost(&a));
+    assert_eq!(lost(&a), lost(&b));
+    assert_eq!(step_reports(&a), step_reports(&b));
+    assert_all_gone(&pids_a);
+    assert_all_gone(&pids_b);
 }
 
 #[test]
@@ -173,6 +209,11 @@ fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
     let spec = cfg.clone().validate().expect("valid config");
     let mut opts = options(20, None);
     opts.deadlines.intent_ms = 3_000;
+    // Processes that read no cell topic: genes go ahead with the intents, so a process
+    // that leaves mid-step, and one that comes back without genes sent ahead, are met
+    // there (processes that read cells one by one are killed in the other tests' runs
+    // only by the launcher at the end).
+    opts.subscribe = Some("all".into());
     let mut reps: Vec<NetReport> = Vec::new();
     let mut pids = Vec::new();
     let mut killed = Vec::new();
@@ -208,6 +249,11 @@ fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
     // The restarted processes rejoin (fresh genes) and the swarm is whole again.
     assert!(reps[600..].iter().any(|r| r.report.live_agents == 20), "restarted agents never rejoined");
     assert!(reps.last().is_some_and(|r| r.report.live_agents == 20 && r.net.processes == 20));
+    // The step after a process came back, the genes went through the world during the
+    // step; then ahead again.
+    let ahead = |r: &&NetReport| r.net.genes_ahead == r.net.processes;
+    assert!(reps[first15..600].iter().filter(ahead).count() > 400, "genes did not go ahead");
+    assert!(reps[1400..].iter().all(|r| ahead(&r)), "genes did not go ahead after the restart");
     // Nobody waited for a dead process beyond what the liveliness tokens told.
     let late: u32 = reps.iter().map(|r| r.net.intents_late).sum();
     assert!(late <= 5, "{late} intents hit the deadline");

@@ -14,8 +14,9 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
-    loss_draw, nest, nested_size, pack, unpack, GeneBatch, GeneBatchHead, HostGenes, HostPercepts, IntentBatch,
-    NetCounters, NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, LOSS_SALT_INTENT, NO_CELL,
+    loss_draw, nest, nested_size, pack, unpack, GeneBatch, GeneBatchCell, GeneBatchHead, HostGenes, HostPercepts,
+    IntentBatch, NetCounters, NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, AHEAD_CELL, LOSS_SALT_INTENT,
+    NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::zenoh_bus::{self, CommonArgs};
@@ -139,6 +140,8 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         publish,
         packs: Vec::new(),
         unpacked: Vec::new(),
+        begun: 0,
+        ahead: HashMap::new(),
     }));
     spawn_publisher(&session, released, genes.clone());
     // Per-cell batches (processes of earlier versions, tests) and bundles.
@@ -383,6 +386,11 @@ struct GeneHub {
     packs: Vec<Vec<u8>>,
     /// Where bundles are unpacked (kept between bundles).
     unpacked: Vec<u8>,
+    /// The step last begun (0 before the first).
+    begun: u64,
+    /// Each hosting process's packs sent ahead ([`AHEAD_CELL`]), by step: for the next
+    /// two steps at most, the latest of each step kept.
+    ahead: HashMap<AgentRange, BTreeMap<u64, Vec<u8>>>,
 }
 
 /// What filing gene batches releases: messages (key, bytes) to publish, in order.
@@ -434,6 +442,7 @@ impl GeneHub {
     /// each; `hosting` the processes served with [`HostGenes`].
     fn begin(&mut self, step: u64, cells: CellMap<Vec<AgentRange>>, per_cell: bool, hosting: &[AgentRange]) {
         self.step = step;
+        self.begun = step;
         self.per_cell = per_cell;
         self.hostile = 0;
         self.hosts.clear();
@@ -503,6 +512,11 @@ impl GeneHub {
         let mut out = Released::default();
         let mut scratch = std::mem::take(&mut self.unpacked);
         match unpack(bundle.packed.0, &mut scratch) {
+            Ok(nested)
+                if nested.len() == 1 && nested[0].open::<GeneBatchCell>().is_ok_and(|h| h.cell == AHEAD_CELL) =>
+            {
+                self.file_ahead(from, bundle.step, nested[0], bundle.packed.0);
+            }
             Ok(nested) => {
                 let mut kept: Vec<(u32, Raw)> = Vec::with_capacity(nested.len());
                 for raw in &nested {
@@ -525,6 +539,39 @@ impl GeneHub {
             Err(_) => self.hostile += 1,
         }
         self.unpacked = scratch;
+        out
+    }
+
+    /// Keep a pack sent ahead (`packed`, holding `nested`) for step `step` of the
+    /// process speaking for `from`, once checked: of one of the next two steps, honest,
+    /// and of its step. A later pack of the same step replaces the earlier.
+    fn file_ahead(&mut self, from: AgentRange, step: u64, nested: Raw, packed: &[u8]) {
+        let Ok(batch) = nested.open::<GeneBatchHead>() else {
+            self.hostile += 1;
+            return;
+        };
+        if batch.step != step || !batch.honest(from) || step > self.begun + 2 {
+            self.hostile += 1;
+            return;
+        }
+        if step <= self.begun {
+            return; // stale
+        }
+        let kept = self.ahead.entry(from).or_default();
+        kept.insert(step, packed.to_vec());
+        kept.retain(|&s, _| s > self.begun);
+    }
+
+    /// The packs sent ahead for step `step`, by sender; older ones are dropped.
+    fn take_ahead(&mut self, step: u64) -> Vec<(AgentRange, Vec<u8>)> {
+        let mut out = Vec::new();
+        for (from, kept) in self.ahead.iter_mut() {
+            if let Some(p) = kept.remove(&step) {
+                out.push((*from, p));
+            }
+            kept.retain(|&s, _| s > step);
+        }
+        self.ahead.retain(|_, kept| !kept.is_empty());
         out
     }
 
@@ -590,6 +637,7 @@ impl GeneHub {
     /// A process left: stop waiting for it.
     fn forget(&mut self, gone: AgentRange) -> Released {
         self.hosts.remove(&gone);
+        self.ahead.remove(&gone);
         let cells: Vec<u32> = self.cells.keys().copied().collect();
         let mut out = Released::default();
         for c in cells {
@@ -804,6 +852,14 @@ impl<'a> Server<'a> {
         // one; a message of their own for every hosting process.
         let per_cell = !self.narrow.is_empty();
         let hosting = self.hosting();
+        // Genes sent ahead go out with the percepts while every process is a hosting one,
+        // lateral transfer is on and every process sent its genes of the step ahead (see
+        // `HostPercepts::genes`; not so at step 1, nor right after a process joined).
+        // Otherwise they go through the hub, as processes publish them during the step.
+        let mut ahead = !self.spec.bare && !per_cell && !hosting.is_empty() && self.world.regime().lateral_transfer;
+        let mut ahead_packs: Vec<(AgentRange, Vec<u8>)> = Vec::new();
+        // The hosting processes each process shares a cell with.
+        let mut partners: HashMap<AgentRange, Vec<AgentRange>> = HashMap::new();
         let hosts: Vec<AgentRange> = self.hosts.keys().copied().collect();
         // Open the gathering before anything goes out: fast answers must find it open.
         {
@@ -842,7 +898,24 @@ impl<'a> Server<'a> {
                 }
                 shared.retain(|_, v| v.len() > 1);
             }
-            self.genes.lock().unwrap_or_else(|e| e.into_inner()).begin(step, shared, per_cell, &hosting);
+            let mut hub = self.genes.lock().unwrap_or_else(|e| e.into_inner());
+            let packs = hub.take_ahead(step);
+            ahead &= hosting.iter().all(|h| packs.iter().any(|(from, _)| from == h));
+            if ahead {
+                for ranges in shared.values() {
+                    for a in ranges {
+                        let p = partners.entry(*a).or_default();
+                        for b in ranges {
+                            if b != a && !p.contains(b) {
+                                p.push(*b);
+                            }
+                        }
+                    }
+                }
+                ahead_packs = packs;
+                shared.clear();
+            }
+            hub.begin(step, shared, per_cell, &hosting);
         }
         // 1. The tick (bare: every step; otherwise when the live set changed), then the
         //    percepts of every occupied cell.
@@ -884,8 +957,13 @@ impl<'a> Server<'a> {
                     cells.sort_unstable();
                     cells.dedup();
                     let percepts: Vec<Raw> = cells.iter().filter_map(|c| nested.get(c).map(|b| Raw(b))).collect();
-                    let size = nested_size(&percepts, 0);
-                    let bytes = encode_sized(&HostPercepts { step, percepts }, size)?;
+                    let genes: Option<Vec<Raw>> = ahead.then(|| {
+                        let mates = partners.get(&to).map_or(&[][..], |p| p.as_slice());
+                        ahead_packs.iter().filter(|(from, _)| mates.contains(from)).map(|(_, p)| Raw(p)).collect()
+                    });
+                    self.counters.genes_ahead += genes.is_some() as u32;
+                    let size = nested_size(&percepts, 0) + genes.as_deref().map_or(0, |g| nested_size(g, 0));
+                    let bytes = encode_sized(&HostPercepts { step, percepts, genes }, size)?;
                     zenoh_bus::put(self.session, &keys::host_percepts(&self.run, to), bytes).await?;
                 }
             }
