@@ -28,6 +28,10 @@
 //!   cells, each encoded once by the world) and [`HostGenes`] (the packs of the other
 //!   processes it shares a cell with, as they sent them and as they arrive, then which
 //!   of its shared cells are complete).
+//! - Genes sent ahead ([`AHEAD_CELL`]): a hosting process's genes for the next step,
+//!   as one batch in a [`GeneBundle`] published just before its intents. While every
+//!   process is a hosting one and each sent them, the world puts the other processes'
+//!   packs into the next step's [`HostPercepts`], and no gene travels during the step.
 //! - [`IntentBatch`]: the intents of one agent process for one step, with the ids of
 //!   agents that idle on purpose and the process's drop counters.
 //! - [`NetReport`]: the world's step report plus the network counters.

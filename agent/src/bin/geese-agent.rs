@@ -14,6 +14,14 @@
 //!    genes wait in an [`Inbox`] (one buffer for every genome of the step), which lends
 //!    them to the learners cell by cell ([`CellGenes`]).
 //!
+//! A hosting process (below) also publishes, just before its intents, the genes its
+//! agents will offer at the next step: one [`AHEAD_CELL`] batch, packed, on
+//! `agent/<ids>/genes` (an agent's gene of step t+1 is the one it holds when step t
+//! ends). When every process did, the world says so in the next step's
+//! [`HostPercepts`] and puts the other processes' packs in it; step 2 is then skipped:
+//! the process files each received gene under the cell its sender's centre is in by
+//! the percepts, and neither publishes nor waits for genes during the step.
+//!
 //! Before publishing its intents the process subscribes to the percept and gene topics
 //! of every cell its agents may be in next step (the current cell and the cells of their
 //! move destinations); Zenoh delivers a session's declarations before its later

@@ -367,6 +367,11 @@ async fn gene_subscriber(
 /// processes it shares a cell with as they arrive, and then which cells are complete,
 /// in [`HostGenes`] messages on `agent/<ids>/in/genes` (built by the publisher when it
 /// wakes: [`spawn_publisher`]).
+///
+/// A hosting process also sends, with its intents, its genes of the next step
+/// ([`AHEAD_CELL`]); the hub checks and keeps them, and when every hosting process sent
+/// them the server puts them into the next step's [`HostPercepts`] instead of opening
+/// the hub's cells for that step.
 /// Runs in the subscriber callback, like [`Gather`].
 struct GeneHub {
     run: String,
