@@ -986,8 +986,11 @@ impl Host {
             self.subs.retain(|_, s| s.wanted + KEEP_STEPS > t);
         }
         let batch = IntentBatch { step: t, intents, idle, counters: std::mem::take(&mut self.counters) };
-        // Our genes for the next step, before the intents that let the world start it.
-        if self.wide && t < self.info.spec.steps {
+        // Our genes for the next step, before the intents that let the world start it
+        // (not while lateral transfer is off: if it comes on at the next step, that
+        // step's genes go through the world during the step).
+        let lateral = self.percepts.values().next().is_some_and(|p| p.regime.lateral_transfer);
+        if self.wide && lateral && t < self.info.spec.steps {
             self.publish_ahead(t + 1).await?;
         }
         tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
