@@ -262,8 +262,10 @@ impl GeneBatchHead<'_> {
 /// processes that share a cell with this one: their packs ([`pack`]) of one
 /// [`AHEAD_CELL`] batch each, sent ahead with their intents of the step before. The
 /// process then has every gene of the step with its percepts, publishes none and waits
-/// for none. The world sends `None` (and the step's genes go through [`HostGenes`])
-/// while some process reads cells one by one, and while lateral transfer is off.
+/// for none. The world sends `None` (and the step's genes go through [`HostGenes`]
+/// during the step) while some process reads cells one by one, while lateral transfer
+/// is off, and when a process with live agents sent no genes ahead (at step 1, and
+/// right after it joined).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct HostPercepts<'a> {
     pub step: u64,

@@ -905,7 +905,10 @@ impl<'a> Server<'a> {
             }
             let mut hub = self.genes.lock().unwrap_or_else(|e| e.into_inner());
             let packs = hub.take_ahead(step);
-            ahead &= hosting.iter().all(|h| packs.iter().any(|(from, _)| from == h));
+            // From every process with a live agent (one without takes no part).
+            let bodies = self.world.bodies();
+            let takes_part = |h: &AgentRange| h.ids().any(|id| bodies.get(id as usize).is_some_and(|b| b.live));
+            ahead &= hosting.iter().filter(|h| takes_part(h)).all(|h| packs.iter().any(|(from, _)| from == h));
             if ahead {
                 for ranges in shared.values() {
                     for a in ranges {
