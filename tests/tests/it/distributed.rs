@@ -309,6 +309,19 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                 let cell = (cy * 10 + cx) as u32;
                 nest(&GeneBatch { step, cell, genes: vec![], absent: vec![11] }).expect("nest")
             };
+            let ahead_bundle = |step: u64, from: u32| {
+                let gene = geese_proto::GeneMsg {
+                    step,
+                    from,
+                    genome: vec![1, 2].into(),
+                    fitness: 1.0,
+                    mapping: Default::default(),
+                };
+                let cell = geese_proto::net::AHEAD_CELL;
+                let batch = nest(&GeneBatch { step, cell, genes: vec![gene], absent: vec![] }).expect("nest");
+                let packed = geese_proto::net::pack(&[Raw(&batch)]).expect("pack");
+                encode(&geese_proto::net::GeneBundle { step, packed: Raw(&packed) }).expect("encode")
+            };
             for round in 0..20u64 {
                 let msgs: Vec<(String, Vec<u8>)> = vec![
                     // Undecodable and wrong-version intents.
@@ -356,6 +369,10 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                         })
                         .expect("encode"),
                     ),
+                    // Genes "sent ahead" for agents the key does not cover, and for a far
+                    // step.
+                    (keys::agents_genes(&run, from0), ahead_bundle(round + 1, 9)),
+                    (keys::agents_genes(&run, from0), ahead_bundle(1_000_000, 1)),
                     // Garbage where the agents listen: the cell's genes and percepts, ticks.
                     (keys::cell_genes(&run, cx, cy), garbage.clone()),
                     (keys::cell_percept(&run, cx, cy), garbage.clone()),

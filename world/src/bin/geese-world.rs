@@ -393,9 +393,9 @@ struct GeneHub {
     unpacked: Vec<u8>,
     /// The step last begun (0 before the first).
     begun: u64,
-    /// Each hosting process's packs sent ahead ([`AHEAD_CELL`]), by step: for the next
-    /// two steps at most, the latest of each step kept.
-    ahead: HashMap<AgentRange, BTreeMap<u64, Vec<u8>>>,
+    /// Each hosting process's pack sent ahead ([`AHEAD_CELL`]) for the step after the
+    /// one begun, with that step.
+    ahead: HashMap<AgentRange, (u64, Vec<u8>)>,
 }
 
 /// What filing gene batches releases: messages (key, bytes) to publish, in order.
@@ -547,37 +547,28 @@ impl GeneHub {
         out
     }
 
-    /// Keep a pack sent ahead (`packed`, holding `nested`) for step `step` of the
-    /// process speaking for `from`, once checked: of one of the next two steps, honest,
-    /// and of its step. A later pack of the same step replaces the earlier.
+    /// Keep a pack sent ahead (`packed`, holding `nested`) of the process speaking for
+    /// `from`, once checked: honest, for the step after the one begun (the only one a
+    /// process sends genes ahead for), and the first of that step (as for a cell's
+    /// batches). One for a later step is hostile; one for an earlier step is stale.
     fn file_ahead(&mut self, from: AgentRange, step: u64, nested: Raw, packed: &[u8]) {
         let Ok(batch) = nested.open::<GeneBatchHead>() else {
             self.hostile += 1;
             return;
         };
-        if batch.step != step || !batch.honest(from) || step > self.begun + 2 {
+        if batch.step != step || !batch.honest(from) || step > self.begun + 1 {
             self.hostile += 1;
             return;
         }
-        if step <= self.begun {
-            return; // stale
+        if step <= self.begun || self.ahead.get(&from).is_some_and(|(s, _)| *s == step) {
+            return;
         }
-        let kept = self.ahead.entry(from).or_default();
-        kept.insert(step, packed.to_vec());
-        kept.retain(|&s, _| s > self.begun);
+        self.ahead.insert(from, (step, packed.to_vec()));
     }
 
-    /// The packs sent ahead for step `step`, by sender; older ones are dropped.
+    /// The packs sent ahead for step `step`, by sender; all others are dropped.
     fn take_ahead(&mut self, step: u64) -> Vec<(AgentRange, Vec<u8>)> {
-        let mut out = Vec::new();
-        for (from, kept) in self.ahead.iter_mut() {
-            if let Some(p) = kept.remove(&step) {
-                out.push((*from, p));
-            }
-            kept.retain(|&s, _| s > step);
-        }
-        self.ahead.retain(|_, kept| !kept.is_empty());
-        out
+        self.ahead.drain().filter(|(_, (s, _))| *s == step).map(|(from, (_, p))| (from, p)).collect()
     }
 
     /// File one batch (`nested`: its encoding) of the process speaking for `from`; what
