@@ -313,7 +313,7 @@ struct Host {
     /// The last step whose genes came with its percepts (sent ahead).
     ahead_step: u64,
     /// Centre cell of each agent of another process in a cell of ours (by agent id,
-    /// `NO_CELL` elsewhere), while genes sent ahead are filed.
+    /// `NO_CELL` elsewhere), for filing genes sent ahead (kept only for its buffer).
     sender_cell: Vec<u32>,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
@@ -716,10 +716,8 @@ impl Host {
     /// others are skipped unread.
     fn take_ahead(&mut self, step: u64, packs: &[Raw]) {
         self.ahead_step = step;
-        let n = self.info.spec.agents as usize;
-        if self.sender_cell.len() != n {
-            self.sender_cell = vec![NO_CELL; n];
-        }
+        self.sender_cell.clear();
+        self.sender_cell.resize(self.info.spec.agents as usize, NO_CELL);
         let (range, geom) = (self.range, self.geom);
         for (&c, p) in &self.percepts {
             for a in p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c) {
@@ -747,13 +745,6 @@ impl Host {
             }
         }
         self.unpacked = scratch;
-        for p in self.percepts.values() {
-            for a in &p.agents {
-                if let Some(x) = self.sender_cell.get_mut(a.id as usize) {
-                    *x = NO_CELL;
-                }
-            }
-        }
     }
 
     /// Publish, ahead, the genes our agents offer at step `step` ([`AHEAD_CELL`]): each
@@ -768,7 +759,13 @@ impl Host {
             .collect();
         let batch = GeneBatchRef { step, cell: AHEAD_CELL, genes: &genes, absent: &[] };
         let nested = nest_sized(&batch, batch.size_hint())?;
-        let packed = pack(&[Raw(&nested)])?;
+        self.publish_bundle(step, &[Raw(&nested)]).await
+    }
+
+    /// Publish gene batches (nested) of step `step` as one packed [`GeneBundle`] on
+    /// `agent/<ids>/genes`.
+    async fn publish_bundle(&self, step: u64, batches: &[Raw<'_>]) -> Result<()> {
+        let packed = pack(batches)?;
         let bytes = encode_sized(&GeneBundle { step, packed: Raw(&packed) }, packed.len() + 16)?;
         self.session
             .put(keys::agents_genes(&self.run, self.range), bytes)
@@ -894,13 +891,7 @@ impl Host {
         // and forwards the pack as it is.
         if !nested.is_empty() {
             let batches: Vec<Raw> = nested.iter().map(|b| Raw(b)).collect();
-            let packed = pack(&batches)?;
-            let bytes = encode_sized(&GeneBundle { step: t, packed: Raw(&packed) }, packed.len() + 16)?;
-            self.session
-                .put(keys::agents_genes(&self.run, self.range), bytes)
-                .congestion_control(CongestionControl::Block)
-                .await
-                .map_err(zerr)?;
+            self.publish_bundle(t, &batches).await?;
         }
         let genes_sent = match self.clock.first_percept {
             Some(f) => PhaseClock::lap(&mut self.clock.begin, f),
