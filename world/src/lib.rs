@@ -8,8 +8,17 @@
 //! - [`config`]: the world's raw configuration and its validation.
 //! - [`layout`]: task layouts (reference-code and paper variants) and placement rules.
 //! - [`world`]: objects, grid registration, percepts, intent resolution, task %, hooks.
+//! - [`gather`]: the server's gathering of one step's intents (sans IO).
+//! - [`hub`]: the server's gene hub: per-cell aggregation and forwarding of gene packs
+//!   between agent processes (sans IO).
+//! - [`server`]: the world server's protocol — presence, control plane, step
+//!   sequencing with deadlines — driven by messages in and a clock value, returning
+//!   messages to publish; the `geese-world` binary only moves bytes between Zenoh and it.
 pub mod config;
+pub mod gather;
+pub mod hub;
 pub mod layout;
+pub mod server;
 pub mod world;
 
 pub use config::{ConfigError, Layout, Start, Task, WorldConfig};

@@ -1,0 +1,499 @@
+//! The world's gene hub (DESIGN.md §2 step 2), sans IO: per-cell gene aggregation and
+//! the forwarding of agent processes' gene packs.
+//!
+//! Fed what arrives on the gene keys (key and bytes, as received), it returns the
+//! messages to publish ([`Released`]); [`GeneHub::flush`] adds what the hosting
+//! processes have still to be sent. Hostile input (undecodable, dishonest, foreign
+//! cell, future step) is dropped and counted, never trusted.
+use geese_proto::keys::{self, AgentRange, Parsed};
+use geese_proto::net::{
+    nested_size, pack, unpack, GeneBatch, GeneBatchCell, GeneBatchHead, HostGenes, Raw, AHEAD_CELL,
+};
+use geese_proto::{decode, encode, encode_sized, Geometry};
+use std::collections::HashMap;
+
+/// Maps keyed by cell, hashed with foldhash: the world fills and reads them for every
+/// shared cell and every batch between two steps, when every agent process waits on it.
+pub type CellMap<V> = HashMap<u32, V, foldhash::fast::FixedState>;
+
+/// Messages (key, bytes) to publish, in order.
+pub type Released = Vec<(String, Vec<u8>)>;
+
+/// Per-cell gene aggregation (DESIGN.md §2 step 2). Agent processes publish their
+/// batches of the shared cells of a step as one packed bundle on `agent/<ids>/genes`;
+/// once every process with an agent centred in a cell has spoken (or left), the cell is
+/// complete. Then a process that reads cells one by one gets the cell's genes as one
+/// batch on `cell/<cx>/<cy>/genes`. A hosting process gets the packs of the other
+/// processes it shares a cell with as they arrive, and then which cells are complete,
+/// in [`HostGenes`] messages on `agent/<ids>/in/genes` (built by [`GeneHub::flush`],
+/// which the shell's publisher calls each time it wakes).
+///
+/// A hosting process also sends, with its intents, its genes of the next step
+/// ([`AHEAD_CELL`]); the hub checks and keeps them, and when every hosting process sent
+/// them the server puts them into the next step's
+/// [`HostPercepts`](geese_proto::net::HostPercepts) instead of opening the hub's cells
+/// for that step. The Zenoh shell files into it from the subscriber callback, like
+/// [`Gather`](crate::gather::Gather).
+pub struct GeneHub {
+    run: String,
+    geom: Geometry,
+    step: u64,
+    cells: CellMap<CellAgg>,
+    /// What each hosting process sharing a cell this step has still to be sent.
+    hosts: HashMap<AgentRange, HostOut>,
+    hostile: u32,
+    /// Whether to publish each cell's aggregate on its own topic (some process reads
+    /// cells one by one).
+    per_cell: bool,
+    /// This step's packs for hosting processes ([`HostOut::packs`]): as their senders
+    /// sent them, or packed again without the batches the checks dropped.
+    packs: Vec<Vec<u8>>,
+    /// Where bundles are unpacked (kept between bundles).
+    unpacked: Vec<u8>,
+    /// The step last begun (0 before the first).
+    begun: u64,
+    /// Each hosting process's pack sent ahead ([`AHEAD_CELL`]) for the step after the
+    /// one begun, with that step.
+    ahead: HashMap<AgentRange, (u64, Vec<u8>)>,
+}
+
+struct CellAgg {
+    expect: Vec<AgentRange>,
+    /// Each process's batch, nested as it sent it (checked, never decoded here unless
+    /// some process reads this cell's topic; only then are its bytes kept).
+    got: Vec<(AgentRange, Vec<u8>)>,
+    sent: bool,
+    /// The hosting processes sharing the cell.
+    hosting: Vec<AgentRange>,
+}
+
+/// What a hosting process has still to be sent this step: other processes' packs
+/// (indices in [`GeneHub::packs`]) and the cells that became complete.
+#[derive(Default)]
+struct HostOut {
+    packs: Vec<usize>,
+    complete: Vec<u32>,
+}
+
+impl GeneHub {
+    /// A hub for run `run` on an arena of geometry `geom`; no step open.
+    pub fn new(run: impl Into<String>, geom: Geometry) -> Self {
+        GeneHub {
+            run: run.into(),
+            geom,
+            step: 0,
+            cells: CellMap::default(),
+            hosts: HashMap::new(),
+            hostile: 0,
+            per_cell: true,
+            packs: Vec::new(),
+            unpacked: Vec::new(),
+            begun: 0,
+            ahead: HashMap::new(),
+        }
+    }
+
+    /// Close the step being filed (later batches of it are stale); returns how many
+    /// hostile messages it dropped since the step began.
+    pub fn close(&mut self) -> u32 {
+        self.step = 0;
+        std::mem::take(&mut self.hostile)
+    }
+
+    /// Open step `step`: `cells` are the shared cells with the processes centred in
+    /// each; `hosting` the processes served with [`HostGenes`].
+    pub fn begin(&mut self, step: u64, cells: CellMap<Vec<AgentRange>>, per_cell: bool, hosting: &[AgentRange]) {
+        self.step = step;
+        self.begun = step;
+        self.per_cell = per_cell;
+        self.hostile = 0;
+        self.hosts.clear();
+        self.packs.clear();
+        self.cells = cells
+            .into_iter()
+            .map(|(c, expect)| {
+                let hosting: Vec<AgentRange> = expect.iter().filter(|r| hosting.contains(r)).copied().collect();
+                for r in &hosting {
+                    self.hosts.entry(*r).or_default();
+                }
+                (c, CellAgg { expect, got: Vec::new(), sent: false, hosting })
+            })
+            .collect();
+    }
+
+    /// Say which processes each incomplete cell still waits for (`geese::flow` trace).
+    pub fn trace_incomplete(&self) {
+        if !tracing::enabled!(target: "geese::flow", tracing::Level::TRACE) {
+            return;
+        }
+        for (c, a) in self.cells.iter().filter(|(_, a)| !a.sent) {
+            let got: Vec<AgentRange> = a.got.iter().map(|(r, _)| *r).collect();
+            tracing::trace!(target: "geese::flow", "step {}: cell {c} expects {:?}, got {:?}", self.step, a.expect, got);
+        }
+    }
+
+    /// File one batch published on its cell's key.
+    pub fn on_batch(&mut self, key: &str, bytes: &[u8]) -> Released {
+        let Parsed::Genes { cx, cy, from: Some(from) } = keys::parse(&self.run, key) else {
+            self.hostile += 1;
+            return Released::default();
+        };
+        let Ok(batch) = decode::<GeneBatchHead>(bytes) else {
+            self.hostile += 1;
+            return Released::default();
+        };
+        let cell_ok =
+            cx < self.geom.cols() && cy < self.geom.rows() && batch.cell == (cy * self.geom.cols() + cx) as u32;
+        if !cell_ok {
+            self.hostile += 1;
+            return Released::default();
+        }
+        let mut out = Released::default();
+        // The body after the version byte is the batch's nested encoding.
+        let nested = Raw(&bytes[1..]);
+        if self.file(from, &batch, nested.0, &mut out) {
+            self.forward(from, &[(batch.cell, nested)], None);
+        }
+        out
+    }
+
+    /// File the batches of one process's bundle.
+    pub fn on_bundle(&mut self, key: &str, bytes: &[u8]) -> Released {
+        let (Parsed::GeneBundle { from }, Ok(bundle)) =
+            (keys::parse(&self.run, key), decode::<geese_proto::net::GeneBundle>(bytes))
+        else {
+            self.hostile += 1;
+            return Released::default();
+        };
+        let mut out = Released::default();
+        let mut scratch = std::mem::take(&mut self.unpacked);
+        match unpack(bundle.packed.0, &mut scratch) {
+            Ok(nested)
+                if nested.len() == 1 && nested[0].open::<GeneBatchCell>().is_ok_and(|h| h.cell == AHEAD_CELL) =>
+            {
+                self.file_ahead(from, bundle.step, nested[0], bundle.packed.0);
+            }
+            Ok(nested) => {
+                let mut kept: Vec<(u32, Raw)> = Vec::with_capacity(nested.len());
+                for raw in &nested {
+                    let Ok(batch) = raw.open::<GeneBatchHead>() else {
+                        self.hostile += 1;
+                        continue;
+                    };
+                    if batch.step != bundle.step || batch.cell as usize >= self.geom.cell_count() {
+                        self.hostile += 1;
+                        continue;
+                    }
+                    if self.file(from, &batch, raw.0, &mut out) {
+                        kept.push((batch.cell, *raw));
+                    }
+                }
+                // Forwarded as it came when every batch passed (the usual case).
+                let whole = kept.len() == nested.len();
+                self.forward(from, &kept, whole.then_some(bundle.packed.0));
+            }
+            Err(_) => self.hostile += 1,
+        }
+        self.unpacked = scratch;
+        out
+    }
+
+    /// Keep a pack sent ahead (`packed`, holding `nested`) of the process speaking for
+    /// `from`, once checked: honest, for the step after the one begun (the only one a
+    /// process sends genes ahead for), and the first of that step (as for a cell's
+    /// batches). One for a later step is hostile; one for an earlier step is stale.
+    fn file_ahead(&mut self, from: AgentRange, step: u64, nested: Raw, packed: &[u8]) {
+        let Ok(batch) = nested.open::<GeneBatchHead>() else {
+            self.hostile += 1;
+            return;
+        };
+        if batch.step != step || !batch.honest(from) || step > self.begun + 1 {
+            self.hostile += 1;
+            return;
+        }
+        if step <= self.begun || self.ahead.get(&from).is_some_and(|(s, _)| *s == step) {
+            return;
+        }
+        self.ahead.insert(from, (step, packed.to_vec()));
+    }
+
+    /// The packs sent ahead for step `step`, by sender; all others are dropped.
+    pub fn take_ahead(&mut self, step: u64) -> Vec<(AgentRange, Vec<u8>)> {
+        self.ahead.drain().filter(|(_, (s, _))| *s == step).map(|(from, (_, p))| (from, p)).collect()
+    }
+
+    /// File one batch (`nested`: its encoding) of the process speaking for `from`; what
+    /// completes goes to `out`. Returns whether the batch was taken (checked, of this
+    /// step, of a shared cell the sender is expected in, and its first there).
+    fn file(&mut self, from: AgentRange, batch: &GeneBatchHead, nested: &[u8], out: &mut Released) -> bool {
+        if !batch.honest(from) {
+            // Genes of agents the sender does not speak for, or a malformed genome.
+            self.hostile += 1;
+            return false;
+        }
+        if batch.step != self.step {
+            if batch.step > self.step {
+                self.hostile += 1;
+            }
+            return false;
+        }
+        let Some(agg) = self.cells.get_mut(&batch.cell) else { return false };
+        if agg.sent || !agg.expect.contains(&from) || agg.got.iter().any(|(r, _)| *r == from) {
+            return false;
+        }
+        let kept = if self.per_cell { nested.to_vec() } else { Vec::new() };
+        agg.got.push((from, kept));
+        self.complete(batch.cell, out);
+        true
+    }
+
+    /// Queue the taken batches of `from` (cell, encoding) for the hosting processes that
+    /// share one of their cells, at once rather than when the cells are complete: as
+    /// `packed`, the pack they came in, when given, else packed here.
+    fn forward(&mut self, from: AgentRange, kept: &[(u32, Raw)], packed: Option<&[u8]>) {
+        let mut to: Vec<AgentRange> = Vec::new();
+        for (cell, _) in kept {
+            for h in self.cells.get(cell).into_iter().flat_map(|a| &a.hosting) {
+                if *h != from && !to.contains(h) {
+                    to.push(*h);
+                }
+            }
+        }
+        if to.is_empty() {
+            return;
+        }
+        let bytes = match packed {
+            Some(p) => p.to_vec(),
+            None => {
+                let raws: Vec<Raw> = kept.iter().map(|(_, r)| *r).collect();
+                match pack(&raws) {
+                    Ok(p) => p,
+                    Err(_) => return,
+                }
+            }
+        };
+        self.packs.push(bytes);
+        let at = self.packs.len() - 1;
+        for h in to {
+            if let Some(o) = self.hosts.get_mut(&h) {
+                o.packs.push(at);
+            }
+        }
+    }
+
+    /// A process left: stop waiting for it.
+    pub fn forget(&mut self, gone: AgentRange) -> Released {
+        self.hosts.remove(&gone);
+        self.ahead.remove(&gone);
+        let cells: Vec<u32> = self.cells.keys().copied().collect();
+        let mut out = Released::default();
+        for c in cells {
+            if let Some(agg) = self.cells.get_mut(&c) {
+                agg.expect.retain(|r| *r != gone);
+            }
+            self.complete(c, &mut out);
+        }
+        out
+    }
+
+    /// Send every hosting process what it has still to be sent: one [`HostGenes`] with
+    /// the other processes' packs filed since, and the cells complete since.
+    ///
+    /// Packs go out as they arrive rather than once a process's cells are complete:
+    /// with 1,000 agents in 10 processes every process shares cells with every other,
+    /// so all cells completed at the last bundle, and the world then relayed ~130 kB to
+    /// each of ten processes in turn while the first served were already computing.
+    /// Streamed, most of it goes out while the processes wait at the barrier anyway.
+    pub fn flush(&mut self, out: &mut Released) {
+        for (to, o) in self.hosts.iter_mut() {
+            if o.packs.is_empty() && o.complete.is_empty() {
+                continue;
+            }
+            let packs: Vec<Raw> = o.packs.iter().filter_map(|&i| self.packs.get(i).map(|b| Raw(b))).collect();
+            let cells = std::mem::take(&mut o.complete);
+            let size = nested_size(&packs, 5 * cells.len());
+            if let Ok(bytes) = encode_sized(&HostGenes { step: self.step, cells, packs }, size) {
+                out.push((keys::host_genes(&self.run, *to), bytes));
+            }
+            o.packs.clear();
+        }
+    }
+
+    /// If every process expected in `cell` has spoken: its aggregate for per-cell
+    /// readers, and the cell noted as complete for the hosting processes sharing it.
+    fn complete(&mut self, cell: u32, out: &mut Released) {
+        let Some(agg) = self.cells.get_mut(&cell) else { return };
+        if agg.sent || agg.got.is_empty() || !agg.expect.iter().all(|r| agg.got.iter().any(|(g, _)| g == r)) {
+            return;
+        }
+        agg.sent = true;
+        if self.per_cell {
+            let mut all = GeneBatch { step: self.step, cell, genes: Vec::new(), absent: Vec::new() };
+            for (_, nested) in &agg.got {
+                // Checked when filed; a genome's codons are only decoded here.
+                let Ok(b) = Raw(nested).open::<GeneBatch>() else { continue };
+                all.genes.extend(b.genes);
+                all.absent.extend(b.absent);
+            }
+            all.genes.sort_by_key(|g| g.from);
+            all.absent.sort_unstable();
+            let (cx, cy) = self.geom.cell_col_row(cell);
+            if let Ok(bytes) = encode(&all) {
+                out.push((keys::cell_genes(&self.run, cx, cy), bytes));
+            }
+        }
+        // The hosting processes here hear that the cell is complete (all its batches
+        // went, or go, to them before that: [`GeneHub::flush`]).
+        for to in &agg.hosting {
+            if let Some(o) = self.hosts.get_mut(to) {
+                o.complete.push(cell);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use geese_proto::net::{nest, GeneBatchRef, GeneBundle};
+    use geese_proto::{GeneMapping, GeneMsg};
+    use std::sync::Arc;
+
+    const RUN: &str = "t";
+
+    fn geom() -> Geometry {
+        Geometry::new(100, 100, 10).unwrap()
+    }
+
+    fn r(first: u32, count: u32) -> AgentRange {
+        AgentRange::new(first, count).unwrap()
+    }
+
+    fn gene(from: u32, step: u64) -> GeneMsg {
+        GeneMsg { step, from, genome: Arc::from(vec![1u32, 2, 3]), fitness: 0.5, mapping: GeneMapping::default() }
+    }
+
+    /// A bundle of `from` for `step` holding one batch per (cell, genes).
+    fn bundle(step: u64, batches: &[(u32, Vec<GeneMsg>)]) -> Vec<u8> {
+        let nested: Vec<Vec<u8>> = batches
+            .iter()
+            .map(|(cell, genes)| nest(&GeneBatchRef { step, cell: *cell, genes, absent: &[] }).unwrap())
+            .collect();
+        let raws: Vec<Raw> = nested.iter().map(|b| Raw(b)).collect();
+        let packed = pack(&raws).unwrap();
+        encode(&GeneBundle { step, packed: Raw(&packed) }).unwrap()
+    }
+
+    fn key(from: AgentRange) -> String {
+        keys::agents_genes(RUN, from)
+    }
+
+    /// Step `step` with cell 5 shared by processes a and b, both hosting.
+    fn open(hub: &mut GeneHub, step: u64, a: AgentRange, b: AgentRange) {
+        let mut cells = CellMap::default();
+        cells.insert(5, vec![a, b]);
+        hub.begin(step, cells, false, &[a, b]);
+    }
+
+    /// The HostGenes messages in `out` for `to`: (cells complete, packs).
+    fn host_genes(out: &Released, to: AgentRange) -> Vec<(Vec<u32>, usize)> {
+        out.iter()
+            .filter(|(k, _)| *k == keys::host_genes(RUN, to))
+            .map(|(_, b)| {
+                let h: HostGenes = decode(b).unwrap();
+                (h.cells, h.packs.len())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_shared_cell_completes_once_every_process_spoke_and_packs_are_forwarded() {
+        let (a, b) = (r(0, 2), r(2, 2));
+        let mut hub = GeneHub::new(RUN, geom());
+        open(&mut hub, 3, a, b);
+        let mut out = hub.on_bundle(&key(a), &bundle(3, &[(5, vec![gene(0, 3)])]));
+        hub.flush(&mut out);
+        assert_eq!(host_genes(&out, b), vec![(vec![], 1)], "a's pack goes to b at once");
+        assert!(host_genes(&out, a).is_empty(), "nothing of its own goes back to a");
+        let mut out = hub.on_bundle(&key(b), &bundle(3, &[(5, vec![gene(2, 3)])]));
+        hub.flush(&mut out);
+        assert_eq!(host_genes(&out, a), vec![(vec![5], 1)]);
+        assert_eq!(host_genes(&out, b), vec![(vec![5], 0)]);
+        assert_eq!(hub.close(), 0);
+    }
+
+    #[test]
+    fn duplicates_stale_and_foreign_cells_are_dropped_future_and_dishonest_ones_counted() {
+        let (a, b) = (r(0, 2), r(2, 2));
+        let mut hub = GeneHub::new(RUN, geom());
+        open(&mut hub, 3, a, b);
+        hub.on_bundle(&key(a), &bundle(3, &[(5, vec![gene(0, 3)])]));
+        // The same process again: the first batch stands, nothing forwarded.
+        let mut out = hub.on_bundle(&key(a), &bundle(3, &[(5, vec![gene(1, 3)])]));
+        hub.flush(&mut out);
+        assert_eq!(host_genes(&out, b), vec![(vec![], 1)], "only the first pack");
+        // A stale step and a cell nobody shares: dropped, not hostile.
+        let mut out = hub.on_bundle(&key(a), &bundle(2, &[(5, vec![gene(0, 2)])]));
+        out.extend(hub.on_bundle(&key(a), &bundle(3, &[(7, vec![gene(0, 3)])])));
+        hub.flush(&mut out);
+        assert!(out.is_empty());
+        assert_eq!(hub.hostile, 0);
+        // A future step, genes of another process's agent, a cell beyond the arena,
+        // garbage, a key naming nobody: hostile.
+        hub.on_bundle(&key(b), &bundle(4, &[(5, vec![gene(2, 4)])]));
+        hub.on_bundle(&key(b), &bundle(3, &[(5, vec![gene(0, 3)])]));
+        hub.on_bundle(&key(b), &bundle(3, &[(100_000, vec![gene(2, 3)])]));
+        hub.on_bundle(&key(b), b"\x08junk");
+        hub.on_bundle("geese/t/agent/zz/genes", &bundle(3, &[(5, vec![gene(2, 3)])]));
+        assert_eq!(hub.close(), 5);
+    }
+
+    #[test]
+    fn a_process_leaving_completes_the_cells_that_waited_for_it() {
+        let (a, b) = (r(0, 2), r(2, 2));
+        let mut hub = GeneHub::new(RUN, geom());
+        open(&mut hub, 1, a, b);
+        hub.on_bundle(&key(a), &bundle(1, &[(5, vec![gene(0, 1)])]));
+        let mut out = hub.forget(b);
+        hub.flush(&mut out);
+        assert_eq!(host_genes(&out, a), vec![(vec![5], 0)]);
+        assert!(host_genes(&out, b).is_empty(), "nothing goes to a process that left");
+    }
+
+    #[test]
+    fn per_cell_readers_get_the_cell_aggregate_sorted_by_sender() {
+        let (a, b) = (r(0, 2), r(2, 2));
+        let mut hub = GeneHub::new(RUN, geom());
+        let mut cells = CellMap::default();
+        cells.insert(5, vec![b, a]);
+        hub.begin(1, cells, true, &[]);
+        hub.on_bundle(&key(b), &bundle(1, &[(5, vec![gene(3, 1), gene(2, 1)])]));
+        let out = hub.on_bundle(&key(a), &bundle(1, &[(5, vec![gene(1, 1)])]));
+        let (cx, cy) = geom().cell_col_row(5);
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].0, keys::cell_genes(RUN, cx, cy));
+        let all: GeneBatch = decode(&out[0].1).unwrap();
+        assert_eq!(all.genes.iter().map(|g| g.from).collect::<Vec<_>>(), vec![1, 2, 3]);
+    }
+
+    #[test]
+    fn genes_sent_ahead_keep_the_first_pack_of_the_next_step_only() {
+        let a = r(0, 2);
+        let mut hub = GeneHub::new(RUN, geom());
+        hub.begin(4, CellMap::default(), false, &[a]);
+        hub.on_bundle(&key(a), &bundle(5, &[(AHEAD_CELL, vec![gene(0, 5)])]));
+        hub.on_bundle(&key(a), &bundle(5, &[(AHEAD_CELL, vec![gene(1, 5)])])); // second: ignored
+        hub.on_bundle(&key(a), &bundle(4, &[(AHEAD_CELL, vec![gene(0, 4)])])); // stale
+        assert_eq!(hub.hostile, 0);
+        hub.on_bundle(&key(a), &bundle(6, &[(AHEAD_CELL, vec![gene(0, 6)])])); // too far ahead
+        hub.on_bundle(&key(a), &bundle(5, &[(AHEAD_CELL, vec![gene(9, 5)])])); // not its agent
+        assert_eq!(hub.hostile, 2);
+        let packs = hub.take_ahead(5);
+        assert_eq!(packs.len(), 1);
+        let mut scratch = Vec::new();
+        let nested = unpack(&packs[0].1, &mut scratch).unwrap();
+        let b: GeneBatch = nested[0].open().unwrap();
+        assert_eq!(b.genes[0].from, 0, "the first pack of the step is kept");
+        assert!(hub.take_ahead(5).is_empty(), "taken once");
+    }
+}
