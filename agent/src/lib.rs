@@ -9,12 +9,17 @@
 //! - [`view`]: an agent's local world model, blackboard and static memory for one tick.
 //! - [`inbox`]: the genes an agent process received from other processes, decoded into
 //!   one reused buffer and lent to its learners by cell.
+//! - [`host`]: an agent process's host of many agents — the protocol of a step
+//!   (percepts, genes, intents, deadlines) driven by messages in and a clock value,
+//!   returning what to publish and subscribe; the `geese-agent` binary is a shell
+//!   around it.
 //! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness),
 //!   and the per-process [`GeneCache`] of received genes' mappings (which also holds the
 //!   genetic step's scratch buffers and the behaviour trees of adopted phenotypes).
 pub mod bt;
 pub mod ge;
 pub mod grammars;
+pub mod host;
 pub mod inbox;
 pub mod learner;
 pub mod leaves;

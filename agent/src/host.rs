@@ -1,0 +1,844 @@
+//! An agent process's host of one or many agents, sans IO (DESIGN.md §2 steps 1–3).
+//!
+//! The `geese-agent` binary is a shell around a [`Host`]: it hands it what arrives
+//! ([`Input`]) and carries out what [`Host::next`] returns ([`Next`]): publish the
+//! process's gene bundle or intent batch, subscribe to or drop a cell's topics, or wait
+//! for the next message until a deadline. Per step, after the world's [`Tick`] (which
+//! says which cell every agent's centre is in):
+//! 1. collect each own agent's cell percept, until every live agent is found or the
+//!    percept deadline passes;
+//! 2. `begin_step`, then publish the process's genes of each cell — only of cells where
+//!    an agent of another process is (own cell-mates get them in memory) — as one
+//!    [`GeneBundle`](geese_proto::net::GeneBundle) of per-cell batches, LZ4-packed, and
+//!    wait, up to the gene deadline, for the world's batches of the cells with expected
+//!    cell-mates of other processes;
+//! 3. `finish_step` with the genes of the cell (the learner sorts candidates by id), and
+//!    publish all intents as one [`IntentBatch`]. Received genes wait in an [`Inbox`].
+//!
+//! A hosting process (`wide`: it reads no cell topic, the world sends it its cells'
+//! percepts in [`HostPercepts`] and the packs of the processes it shares cells with in
+//! [`HostGenes`]) also publishes, just before its intents, the genes its agents will
+//! offer at the next step ([`AHEAD_CELL`]); when every process did, the world puts the
+//! other processes' packs into the next step's percepts and step 2 is skipped.
+//!
+//! A process that reads cells one by one subscribes, before publishing its intents, to
+//! the cells its agents may be in next step (the current cell and the cells of their
+//! move destinations): Zenoh delivers a session's declarations before its later
+//! publications, and the world publishes the next percepts only after every intent, so
+//! those subscriptions are in place in time. Hence [`Next::Act`] is an ordered list.
+use crate::ge::Grammar;
+use crate::inbox::{CellGenes, Inbox};
+use crate::{GeneCache, GeneRef, Learner, LearnerConfig};
+use foldhash::fast::FixedState;
+use geese_proto::keys::{self, AgentRange, Parsed};
+use geese_proto::net::{
+    loss_draw, nest_sized, pack, unpack, GeneBatchCell, GeneBatchHead, GeneBatchRef, GeneBundle, HostCounters,
+    HostGenes, HostPercepts, IntentBatch, Raw, RunInfo, Tick, AHEAD_CELL, LOSS_SALT_PERCEPT, NO_CELL,
+};
+use geese_proto::seed::{derive, Owner, Purpose};
+use geese_proto::{decode, encode, encode_sized, AgentId, CodecError, GeneMsg, Geometry, Intent, Op, Percept};
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Maps by cell or agent id looked up for every agent every step, hashed with foldhash
+/// (SipHash showed in profiles of 10 x 100 agents).
+type FastMap<K, V> = HashMap<K, V, FixedState>;
+
+/// Cells stay subscribed this many steps after they were last a candidate (agents
+/// often step back and forth across a cell border).
+const KEEP_STEPS: u64 = 2;
+
+/// Why a host could not be built or go on.
+#[derive(Debug, thiserror::Error)]
+pub enum HostError {
+    #[error("agents {range} outside the run's {agents} agents")]
+    Range { range: AgentRange, agents: u32 },
+    #[error("learner configuration from the world: {0}")]
+    Learner(String),
+    #[error("grammar {name}: {reason}")]
+    Grammar { name: String, reason: String },
+    #[error("encoding a message: {0}")]
+    Codec(#[from] CodecError),
+}
+
+/// What arrives, as received.
+#[derive(Debug, Clone, Copy)]
+pub enum Input<'a> {
+    /// The world's [`Tick`].
+    Tick(&'a [u8]),
+    /// A percept on the topic of cell `cell`.
+    Percept { cell: u32, bytes: &'a [u8] },
+    /// The world's batch of all genes of cell `cell`, on its topic.
+    CellGenes { cell: u32, bytes: &'a [u8] },
+    /// [`HostPercepts`] on this process's own key.
+    HostPercepts(&'a [u8]),
+    /// [`HostGenes`] on this process's own key.
+    HostGenes(&'a [u8]),
+    /// Something that was not what its key promised (counted as hostile).
+    Hostile,
+    /// A liveliness token appeared (`alive`) or went.
+    Presence { alive: bool, key: &'a str },
+    /// The control plane's stop, or a signal.
+    Stop,
+}
+
+/// One thing for the shell to do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Out {
+    /// Publish a [`GeneBundle`] on `agent/<ids>/genes`.
+    Genes(Vec<u8>),
+    /// Publish an [`IntentBatch`] on `agent/<ids>/action`.
+    Intents(Vec<u8>),
+    /// Subscribe to the percept and gene topics of a cell.
+    Subscribe(u32),
+    /// Drop the subscriptions of a cell.
+    Unsubscribe(u32),
+}
+
+/// What the shell does next.
+#[derive(Debug)]
+pub enum Next {
+    /// Carry these out, in order, then call [`Host::next`] again.
+    Act(Vec<Out>),
+    /// Nothing to do until an input arrives, or until the instant, if any.
+    Wait(Option<Instant>),
+    /// The process is done (stop, or the world left).
+    Stopped,
+}
+
+/// A step between its genes and its intents: what `begin_step` left for `finish_step`.
+struct Pending {
+    step: u64,
+    own: usize,
+    idle: Vec<AgentId>,
+    active: Vec<(AgentId, u32)>,
+    /// Each cell's own genes.
+    local: FastMap<u32, Vec<GeneMsg>>,
+    /// Which remote cell-mates each cell waits for.
+    wait_for: FastMap<u32, Vec<AgentId>>,
+    deadline: Instant,
+    genes_sent: Instant,
+}
+
+/// The agents of one process and the protocol around them.
+pub struct Host {
+    range: AgentRange,
+    info: RunInfo,
+    geom: Geometry,
+    wide: bool,
+    learners: Vec<Learner>,
+    /// Mapped genes of senders, shared by this process's learners.
+    gene_cache: GeneCache,
+    loss_streams: Vec<u64>,
+    /// Subscribed cells and the last step for which each was a candidate.
+    subs: HashMap<u32, u64>,
+    /// Last completed step.
+    done: u64,
+    /// Own agents the world counts as live (from the latest tick), by index.
+    live: Vec<bool>,
+    /// Centre cell each own agent was last seen in (where to subscribe while unseen).
+    last_cell: Vec<u32>,
+    /// The step whose percepts are being collected (0: none) and until when.
+    collecting: u64,
+    collect_deadline: Option<Instant>,
+    percepts: FastMap<u32, Percept>,
+    /// Own agent → the cell whose percept shows its centre, this step.
+    found: FastMap<AgentId, u32>,
+    /// Genes received from other processes, for steps not yet finished.
+    inbox: Inbox,
+    /// (step, cell) of every gene aggregate received from the world.
+    heard: HashSet<(u64, u32), FixedState>,
+    /// Where received packs are unpacked (kept between messages).
+    unpacked: Vec<u8>,
+    /// The last step whose genes came with its percepts (sent ahead).
+    ahead_step: u64,
+    /// Centre cell of each agent of another process in a cell of ours (by agent id,
+    /// `NO_CELL` elsewhere), for filing genes sent ahead (kept only for its buffer).
+    sender_cell: Vec<u32>,
+    present: BTreeMap<AgentRange, u32>,
+    counters: HostCounters,
+    stop: bool,
+    bare_tick: Option<u64>,
+    /// A tick came: check that the cells of own agents are subscribed.
+    tick_seen: bool,
+    pending: Option<Pending>,
+    clock: PhaseClock,
+}
+
+/// Where a process's steps spend their wall time (reported at exit on the
+/// `geese::flow` target at debug level): from the first percept of a step to its genes
+/// sent, waiting for cell-mates' genes, deciding and sending intents, and from the
+/// intents to the next step's first percept.
+#[derive(Default)]
+struct PhaseClock {
+    first_percept: Option<Instant>,
+    intents_sent: Option<Instant>,
+    steps: u64,
+    begin: Duration,
+    gene_wait: Duration,
+    finish: Duration,
+    between: Duration,
+}
+
+impl PhaseClock {
+    /// The first percept of a new step arrived.
+    fn step_begins(&mut self, now: Instant) {
+        if let Some(sent) = self.intents_sent.take() {
+            self.between += now.saturating_duration_since(sent);
+        }
+        self.first_percept = Some(now);
+    }
+}
+
+impl Host {
+    /// The agents `range` of the run described by `info`; `wide`: read no cell topic
+    /// (the world sends this process its cells' percepts and genes).
+    pub fn new(range: AgentRange, info: RunInfo, wide: bool) -> Result<Self, HostError> {
+        if range.last >= info.spec.agents {
+            return Err(HostError::Range { range, agents: info.spec.agents });
+        }
+        let geom = info.geometry;
+        let mut learners = Vec::new();
+        let mut loss_streams = Vec::new();
+        if !info.spec.bare {
+            let cfg: LearnerConfig =
+                serde_json::from_str(&info.spec.learner_json).map_err(|e| HostError::Learner(e.to_string()))?;
+            cfg.validate().map_err(|e| HostError::Learner(e.to_string()))?;
+            let grammar = Grammar::parse(&info.spec.grammar_text)
+                .map_err(|e| HostError::Grammar { name: info.spec.grammar_name.clone(), reason: e.to_string() })?;
+            let (cfg, grammar) = (Arc::new(cfg), Arc::new(grammar));
+            for id in range.ids() {
+                learners.push(Learner::new(id, cfg.clone(), grammar.clone(), geom, info.hub, info.spec.seed));
+                loss_streams.push(derive(info.spec.seed, Owner::Agent(id), Purpose::Loss) ^ LOSS_SALT_PERCEPT);
+            }
+        }
+        let last_cell = range.ids().map(|id| info.cells.get(id as usize).copied().unwrap_or(NO_CELL)).collect();
+        Ok(Host {
+            range,
+            done: info.next_step.saturating_sub(1),
+            live: vec![false; range.len() as usize],
+            last_cell,
+            geom,
+            wide,
+            info,
+            learners,
+            gene_cache: GeneCache::new(),
+            loss_streams,
+            subs: HashMap::new(),
+            collecting: 0,
+            collect_deadline: None,
+            percepts: FastMap::default(),
+            found: FastMap::default(),
+            inbox: Inbox::default(),
+            heard: HashSet::default(),
+            unpacked: Vec::new(),
+            ahead_step: 0,
+            sender_cell: Vec::new(),
+            present: BTreeMap::new(),
+            counters: HostCounters::default(),
+            stop: false,
+            bare_tick: None,
+            tick_seen: false,
+            pending: None,
+            clock: PhaseClock::default(),
+        })
+    }
+
+    /// The agents this process speaks for.
+    pub fn range(&self) -> AgentRange {
+        self.range
+    }
+
+    /// Whether the process reads no cell topic (see [`Host::new`]).
+    pub fn wide(&self) -> bool {
+        self.wide
+    }
+
+    /// The last step this process completed.
+    pub fn done(&self) -> u64 {
+        self.done
+    }
+
+    /// Whether the process stopped.
+    pub fn stopped(&self) -> bool {
+        self.stop
+    }
+
+    /// The cells subscribed now (a process reading cells one by one).
+    pub fn subscribed(&self) -> Vec<u32> {
+        let mut v: Vec<u32> = self.subs.keys().copied().collect();
+        v.sort_unstable();
+        v
+    }
+
+    fn bare(&self) -> bool {
+        self.info.spec.bare
+    }
+
+    fn idx(&self, id: AgentId) -> usize {
+        (id - self.range.first) as usize
+    }
+
+    /// The subscriptions a process reading cells one by one starts with.
+    pub fn start(&mut self) -> Vec<Out> {
+        let mut out = Vec::new();
+        if !self.wide && !self.bare() {
+            self.want_own_cells(&mut out);
+        }
+        out
+    }
+
+    /// The cell of every own agent, dead or alive: a restarted agent's body is revived
+    /// where it stands, and the percept that shows it live may come before the tick that
+    /// says so (a process that dropped the cell then stayed deaf to it for good).
+    fn own_cells(&self) -> Vec<u32> {
+        self.last_cell.iter().copied().filter(|&c| c != NO_CELL).collect()
+    }
+
+    /// Make sure the cell of every own agent is subscribed for the next step.
+    fn want_own_cells(&mut self, out: &mut Vec<Out>) {
+        for c in self.own_cells() {
+            self.want(c, self.done + 1, out);
+        }
+    }
+
+    /// Make sure cell `cell` is subscribed and keep it for step `step`.
+    fn want(&mut self, cell: u32, step: u64, out: &mut Vec<Out>) {
+        match self.subs.get_mut(&cell) {
+            Some(w) => *w = (*w).max(step),
+            None => {
+                self.subs.insert(cell, step);
+                out.push(Out::Subscribe(cell));
+            }
+        }
+    }
+
+    /// Every own live agent has been seen in a percept of the step being collected.
+    fn all_found(&self) -> bool {
+        self.range.ids().all(|id| !self.live[self.idx(id)] || self.found.contains_key(&id))
+    }
+
+    /// Advance as far as possible at time `now`.
+    pub fn next(&mut self, now: Instant) -> Next {
+        if self.stop {
+            return Next::Stopped;
+        }
+        if let Some(t) = self.bare_tick.take() {
+            let r = self.bare_step(t);
+            return self.result(r);
+        }
+        if let Some(p) = &self.pending {
+            let (step, deadline) = (p.step, p.deadline);
+            if self.genes_complete() {
+                let r = self.finish(now, Vec::new());
+                return self.result(r);
+            }
+            if now >= deadline {
+                let late = self.pending.as_ref().map_or(0, |p| {
+                    p.wait_for
+                        .iter()
+                        .filter(|(&c, _)| !self.heard.contains(&(step, c)))
+                        .map(|(_, mates)| mates.len() as u32)
+                        .sum::<u32>()
+                });
+                tracing::warn!(
+                    "agents {}: step {step}: {late} cell-mates' genes missing at the gene deadline ({} ms)",
+                    self.range,
+                    self.info.spec.deadlines.gene_ms
+                );
+                self.counters.genes_late += late;
+                let r = self.finish(now, Vec::new());
+                return self.result(r);
+            }
+            return Next::Wait(Some(deadline));
+        }
+        let mut out = Vec::new();
+        if std::mem::take(&mut self.tick_seen) && !self.wide && !self.bare() {
+            // Wherever the world now says our agents are, listen there.
+            self.want_own_cells(&mut out);
+        }
+        if self.collecting > self.done {
+            let expired = self.collect_deadline.is_some_and(|d| now >= d);
+            if expired && !self.all_found() {
+                tracing::warn!(
+                    "agents {}: step {}: percepts missing at the percept deadline ({} ms)",
+                    self.range,
+                    self.collecting,
+                    self.info.spec.deadlines.percept_ms
+                );
+            }
+            if self.all_found() || expired {
+                let r = self.begin(now, out);
+                return self.result(r);
+            }
+        }
+        if out.is_empty() {
+            Next::Wait(self.collect_deadline)
+        } else {
+            Next::Act(out)
+        }
+    }
+
+    fn result(&mut self, r: Result<Vec<Out>, HostError>) -> Next {
+        match r {
+            Ok(out) => Next::Act(out),
+            Err(e) => {
+                // Only our own messages are encoded here; failing to is a bug, not input.
+                tracing::error!("agents {}: {e}; stopping", self.range);
+                self.stop = true;
+                Next::Stopped
+            }
+        }
+    }
+
+    /// File what arrived.
+    pub fn absorb(&mut self, input: Input, now: Instant) {
+        tracing::trace!(target: "geese::flow", "agents {}: {input:?} (done {}, collecting {})", self.range, self.done, self.collecting);
+        match input {
+            Input::Tick(bytes) => match decode::<Tick>(bytes) {
+                Ok(t) if self.bare() => {
+                    if t.step > self.done {
+                        self.bare_tick = Some(t.step);
+                    }
+                }
+                Ok(t) if t.cells.len() == self.info.spec.agents as usize => {
+                    // The live set from step t on (ticks precede that step's percepts).
+                    for id in self.range.ids() {
+                        let k = self.idx(id);
+                        let c = t.cells[id as usize];
+                        self.live[k] = c != NO_CELL;
+                        if c != NO_CELL {
+                            self.last_cell[k] = c;
+                        }
+                    }
+                    self.tick_seen = true;
+                }
+                _ => self.counters.hostile += 1,
+            },
+            Input::Percept { cell, bytes } => match decode::<Percept>(bytes) {
+                Ok(p) if p.cell == cell => self.take_percept(p, now),
+                _ => self.counters.hostile += 1,
+            },
+            Input::HostPercepts(bytes) => match decode::<HostPercepts>(bytes) {
+                Ok(b) => {
+                    let percepts: Vec<Percept> = self.open_each(&b.percepts);
+                    for p in self.only_valid(percepts, |p| p.step == b.step) {
+                        self.take_percept(p, now);
+                    }
+                    if let Some(packs) = &b.genes {
+                        if b.step == self.collecting && b.step > self.done {
+                            self.take_ahead(b.step, packs);
+                        }
+                    }
+                }
+                Err(_) => self.counters.hostile += 1,
+            },
+            Input::CellGenes { cell, bytes } => match decode::<GeneBatchHead>(bytes) {
+                // A cell's own topic carries its whole aggregate: the cell is complete.
+                Ok(b) if b.cell == cell => {
+                    if b.step > self.done {
+                        self.heard.insert((b.step, cell));
+                    }
+                    self.take_genes(b)
+                }
+                _ => self.counters.hostile += 1,
+            },
+            Input::HostGenes(bytes) => match decode::<HostGenes>(bytes) {
+                Ok(b) => self.take_host_genes(b),
+                Err(_) => self.counters.hostile += 1,
+            },
+            Input::Hostile => self.counters.hostile += 1,
+            Input::Presence { alive, key } => match keys::parse(&self.info.spec.run, key) {
+                Parsed::WorldPresence if !alive => {
+                    tracing::info!("agents {}: the world left; exiting", self.range);
+                    self.stop = true;
+                }
+                Parsed::AgentsPresence { agents } => keys::tally(&mut self.present, agents, alive),
+                _ => {}
+            },
+            Input::Stop => self.stop = true,
+        }
+    }
+
+    fn take_host_genes(&mut self, b: HostGenes) {
+        // The cells listed are complete, whether or not a batch came with them.
+        if b.step > self.done {
+            for &c in &b.cells {
+                if (c as usize) < self.geom.cell_count() {
+                    self.heard.insert((b.step, c));
+                } else {
+                    self.counters.hostile += 1;
+                }
+            }
+        }
+        // Packs come as they reach the world, before their cells are complete. Only
+        // batches of cells our agents are in (the cells whose percepts the step brought,
+        // first, from the same session) are decoded.
+        let filter = self.collecting == b.step;
+        let mut scratch = std::mem::take(&mut self.unpacked);
+        for p in &b.packs {
+            match unpack(p.0, &mut scratch) {
+                Ok(mut nested) => {
+                    if filter {
+                        // Batches that do not peek well are decoded, and counted.
+                        nested.retain(|r| {
+                            r.open::<GeneBatchCell>()
+                                .map_or(true, |h| h.step != b.step || self.percepts.contains_key(&h.cell))
+                        });
+                    }
+                    let batches = self.open_each(&nested);
+                    for g in self.only_valid(batches, |g: &GeneBatchHead| g.step == b.step) {
+                        self.take_genes(g);
+                    }
+                }
+                Err(_) => self.counters.hostile += 1,
+            }
+        }
+        self.unpacked = scratch;
+    }
+
+    /// Open the nested messages of a message from the world; one that does not open is
+    /// hostile.
+    fn open_each<'a, T: serde::Deserialize<'a>>(&mut self, nested: &[Raw<'a>]) -> Vec<T> {
+        let mut out = Vec::with_capacity(nested.len());
+        for b in nested {
+            match b.open::<T>() {
+                Ok(v) => out.push(v),
+                Err(_) => self.counters.hostile += 1,
+            }
+        }
+        out
+    }
+
+    /// The items of a bundle that belong to the bundle's step (`same_step`) and name a
+    /// cell of the arena; the others are counted as hostile.
+    fn only_valid<T: Cell>(&mut self, items: Vec<T>, same_step: impl Fn(&T) -> bool) -> Vec<T> {
+        let cells = self.geom.cell_count();
+        let before = items.len();
+        let kept: Vec<T> = items.into_iter().filter(|i| same_step(i) && (i.cell() as usize) < cells).collect();
+        self.counters.hostile += (before - kept.len()) as u32;
+        kept
+    }
+
+    /// File the percept of one cell (from its own message or a bundle).
+    fn take_percept(&mut self, p: Percept, now: Instant) {
+        if p.step <= self.done || p.step < self.collecting {
+            return; // stale
+        }
+        if self.pending.as_ref().is_some_and(|q| p.step > q.step) {
+            // The world went on without our intents (its deadline passed): this step is
+            // finished first; its agents idle in the one it skipped to.
+            tracing::debug!(
+                "agents {}: percept of step {} while finishing step {}",
+                self.range,
+                p.step,
+                self.collecting
+            );
+            return;
+        }
+        if p.step > self.collecting {
+            tracing::trace!(target: "geese::flow", "agents {}: collecting step {}", self.range, p.step);
+            self.clock.step_begins(now);
+            self.collecting = p.step;
+            self.percepts.clear();
+            self.found.clear();
+            self.collect_deadline = Some(now + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64));
+        }
+        let cell = p.cell;
+        for a in &p.agents {
+            if self.range.contains(a.id) && a.live && self.geom.cell_of(a.pos) == cell {
+                self.found.insert(a.id, cell);
+            }
+        }
+        self.percepts.insert(cell, p);
+    }
+
+    /// File the genes of step `step` that came with its percepts: the other processes'
+    /// packs, each of one batch sent ahead ([`AHEAD_CELL`]). A gene goes to the cell
+    /// its sender's centre is in by this step's percepts, if that is a cell of ours; the
+    /// others are skipped unread.
+    fn take_ahead(&mut self, step: u64, packs: &[Raw]) {
+        self.ahead_step = step;
+        self.sender_cell.clear();
+        self.sender_cell.resize(self.info.spec.agents as usize, NO_CELL);
+        let (range, geom) = (self.range, self.geom);
+        for (&c, p) in &self.percepts {
+            for a in p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c) {
+                if let Some(x) = self.sender_cell.get_mut(a.id as usize) {
+                    *x = c;
+                }
+            }
+        }
+        let mut scratch = std::mem::take(&mut self.unpacked);
+        for p in packs {
+            let Ok(nested) = unpack(p.0, &mut scratch) else {
+                self.counters.hostile += 1;
+                continue;
+            };
+            for raw in nested {
+                let cells = &self.sender_cell;
+                let cell_of = |from: AgentId| cells.get(from as usize).copied().filter(|&c| c != NO_CELL);
+                let filed = match raw.open::<GeneBatchHead>() {
+                    Ok(b) if b.step == step && b.cell == AHEAD_CELL => self.inbox.file_by_sender(&b, cell_of),
+                    _ => false,
+                };
+                if !filed {
+                    self.counters.hostile += 1;
+                }
+            }
+        }
+        self.unpacked = scratch;
+    }
+
+    /// File a batch of genes of one cell (the cell's aggregate, or one process's batch
+    /// of it; whether the cell is complete is said apart).
+    fn take_genes(&mut self, b: GeneBatchHead) {
+        if b.step > self.done && !self.inbox.file(&b) {
+            self.counters.hostile += 1;
+        }
+    }
+
+    /// Is some process speaking for agent `m` present?
+    fn is_present(&self, m: AgentId) -> bool {
+        self.present.keys().any(|r| r.contains(m))
+    }
+
+    /// The genes of every cell the pending step waits for are in (or their senders left).
+    fn genes_complete(&self) -> bool {
+        let Some(p) = &self.pending else { return true };
+        p.wait_for
+            .iter()
+            .all(|(&c, mates)| self.heard.contains(&(p.step, c)) || mates.iter().all(|&m| !self.is_present(m)))
+    }
+
+    /// Publish gene batches (nested) of step `step` as one packed [`GeneBundle`].
+    fn bundle(step: u64, batches: &[Raw<'_>]) -> Result<Out, HostError> {
+        let packed = pack(batches)?;
+        let bytes = encode_sized(&GeneBundle { step, packed: Raw(&packed) }, packed.len() + 16)?;
+        Ok(Out::Genes(bytes))
+    }
+
+    /// Publish, ahead, the genes our agents offer at step `step` ([`AHEAD_CELL`]): each
+    /// agent's gene as it stands, except those of agents whose percept of that step the
+    /// injected loss will drop (they take no part in it). The world files them and
+    /// sends them on with the percepts of `step`.
+    fn ahead(&self, step: u64) -> Result<Out, HostError> {
+        let p_loss = self.info.spec.loss.percept;
+        let genes: Vec<GeneMsg> = (0..self.learners.len())
+            .filter(|&k| p_loss <= 0.0 || loss_draw(self.loss_streams[k], step, 0) >= p_loss)
+            .map(|k| self.learners[k].offer(step))
+            .collect();
+        let batch = GeneBatchRef { step, cell: AHEAD_CELL, genes: &genes, absent: &[] };
+        let nested = nest_sized(&batch, batch.size_hint())?;
+        Self::bundle(step, &[Raw(&nested)])
+    }
+
+    fn bare_step(&mut self, step: u64) -> Result<Vec<Out>, HostError> {
+        let batch = IntentBatch {
+            step,
+            intents: Vec::new(),
+            idle: self.range.ids().collect(),
+            counters: std::mem::take(&mut self.counters),
+        };
+        self.done = step;
+        Ok(vec![Out::Intents(encode(&batch)?)])
+    }
+
+    /// Steps 1–2 of the step being collected: begin every agent, publish the genes of
+    /// shared cells, and wait for cell-mates' genes — or finish at once when none are
+    /// awaited.
+    fn begin(&mut self, now: Instant, mut out: Vec<Out>) -> Result<Vec<Out>, HostError> {
+        let t = self.collecting;
+        let own: Vec<AgentId> = self.range.ids().filter(|&id| self.live[self.idx(id)]).collect();
+        let p_loss = self.info.spec.loss.percept;
+        let mut idle: Vec<AgentId> = Vec::new();
+        let mut active: Vec<(AgentId, u32)> = Vec::new();
+        let mut local: FastMap<u32, Vec<GeneMsg>> = FastMap::default();
+        let mut absent: FastMap<u32, Vec<AgentId>> = FastMap::default();
+        for &id in &own {
+            let k = self.idx(id);
+            let Some(&c) = self.found.get(&id) else {
+                // Its percept never came: it idles (its mates do not know it is there).
+                self.counters.percepts_missing += 1;
+                idle.push(id);
+                continue;
+            };
+            self.last_cell[k] = c;
+            if p_loss > 0.0 && loss_draw(self.loss_streams[k], t, 0) < p_loss {
+                self.counters.percepts_lost += 1;
+                idle.push(id);
+                absent.entry(c).or_default().push(id);
+                continue;
+            }
+            let Some(percept) = self.percepts.get(&c) else {
+                continue;
+            };
+            if let Some(g) = self.learners[k].begin_step(percept) {
+                local.entry(c).or_default().push(g);
+            } else {
+                tracing::trace!(target: "geese::flow", "agents {}: step {t}: agent {id} offers no gene", self.range);
+            }
+            active.push((id, c));
+        }
+        // The other processes' genes came with the percepts (sent ahead), and ours went
+        // ahead too: nothing to publish or wait for.
+        let ahead = self.ahead_step == t;
+        // Publish our genes in cells where an agent of another process has its centre.
+        let mut out_cells: Vec<u32> =
+            if ahead { Vec::new() } else { local.keys().chain(absent.keys()).copied().collect() };
+        out_cells.sort_unstable();
+        out_cells.dedup();
+        let mut nested = Vec::new();
+        for c in out_cells {
+            let outsiders = self.percepts.get(&c).is_some_and(|p| {
+                p.agents.iter().any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
+            });
+            if !outsiders {
+                continue;
+            }
+            let batch = GeneBatchRef {
+                step: t,
+                cell: c,
+                genes: local.get(&c).map_or(&[], |v| v.as_slice()),
+                absent: absent.get(&c).map_or(&[], |v| v.as_slice()),
+            };
+            nested.push(nest_sized(&batch, batch.size_hint())?);
+        }
+        // All of them in one message, packed: the world files each batch as its cell's,
+        // and forwards the pack as it is.
+        if !nested.is_empty() {
+            let batches: Vec<Raw> = nested.iter().map(|b| Raw(b)).collect();
+            out.push(Self::bundle(t, &batches)?);
+        }
+        if let Some(f) = self.clock.first_percept {
+            self.clock.begin += now.saturating_duration_since(f);
+        }
+        // Which remote cell-mates each cell waits for: expected mates of another process
+        // whose centre is in the cell (others publish elsewhere and count as lost).
+        // Every own agent in a cell expects the same remote mates (its list differs from
+        // another own agent's only by own ids), so one agent's list per cell will do.
+        let mut wait_for: FastMap<u32, Vec<AgentId>> = FastMap::default();
+        let (range, geom) = (self.range, self.geom);
+        for &(id, c) in active.iter().filter(|_| !ahead) {
+            if wait_for.contains_key(&c) {
+                continue;
+            }
+            let Some(p) = self.percepts.get(&c) else {
+                continue;
+            };
+            let mut remote: Vec<AgentId> =
+                p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c).map(|a| a.id).collect();
+            remote.sort_unstable();
+            let mates: Vec<AgentId> = self.learners[self.idx(id)]
+                .expected_mates()
+                .iter()
+                .copied()
+                .filter(|m| remote.binary_search(m).is_ok())
+                .collect();
+            wait_for.insert(c, mates);
+        }
+        wait_for.retain(|_, mates| !mates.is_empty());
+        let deadline = now + Duration::from_millis(self.info.spec.deadlines.gene_ms as u64);
+        self.pending =
+            Some(Pending { step: t, own: own.len(), idle, active, local, wait_for, deadline, genes_sent: now });
+        if self.genes_complete() {
+            return self.finish(now, out);
+        }
+        Ok(out)
+    }
+
+    /// Step 3: finish every active agent with its cell's genes, and publish the intents
+    /// (after the subscriptions for the next step, and the genes sent ahead).
+    fn finish(&mut self, now: Instant, mut out: Vec<Out>) -> Result<Vec<Out>, HostError> {
+        let Some(p) = self.pending.take() else { return Ok(out) };
+        let t = p.step;
+        self.clock.gene_wait += now.saturating_duration_since(p.genes_sent);
+        let mut intents: Vec<Intent> = Vec::with_capacity(p.active.len());
+        // Each cell's genes: our own, then the others' as they arrived, lent from the
+        // inbox; in sender order once per cell, so that each learner's own check finds
+        // them sorted.
+        let range = self.range;
+        let mut lent = Vec::with_capacity(self.inbox.len() + p.own);
+        for (&c, genes) in &p.local {
+            lent.extend(genes.iter().map(|g| (c, GeneRef::of(g))));
+        }
+        self.inbox.lend(t, |from| range.contains(from), &mut lent);
+        let cell_genes = CellGenes::new(lent);
+        for &(id, c) in &p.active {
+            let k = (id - range.first) as usize;
+            intents.push(self.learners[k].finish_step(cell_genes.of(c), &mut self.gene_cache));
+        }
+        drop(cell_genes);
+        // Subscriptions for step t+1: where each agent is, and where its moves lead.
+        if !self.wide {
+            let mut next = self.own_cells();
+            for i in &intents {
+                for op in &i.ops {
+                    if let Op::Move { to, .. } = op {
+                        next.push(self.geom.cell_of(*to));
+                    }
+                }
+            }
+            next.sort_unstable();
+            next.dedup();
+            for c in next {
+                self.want(c, t + 1, &mut out);
+            }
+            let mut dropped: Vec<u32> =
+                self.subs.iter().filter(|(_, &w)| w + KEEP_STEPS <= t).map(|(&c, _)| c).collect();
+            dropped.sort_unstable();
+            for c in dropped {
+                self.subs.remove(&c);
+                out.push(Out::Unsubscribe(c));
+            }
+        }
+        let batch = IntentBatch { step: t, intents, idle: p.idle, counters: std::mem::take(&mut self.counters) };
+        // Our genes for the next step, before the intents that let the world start it
+        // (not while lateral transfer is off: if it comes on at the next step, that
+        // step's genes go through the world during the step).
+        let lateral = self.percepts.values().next().is_some_and(|p| p.regime.lateral_transfer);
+        if self.wide && lateral && t < self.info.spec.steps {
+            out.push(self.ahead(t + 1)?);
+        }
+        tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
+        out.push(Out::Intents(encode(&batch)?));
+        let end = Instant::now();
+        self.clock.finish += end.saturating_duration_since(now);
+        self.clock.intents_sent = Some(end);
+        self.clock.steps += 1;
+        self.done = t;
+        self.collect_deadline = None;
+        self.percepts.clear();
+        self.found.clear();
+        self.inbox.retire(t);
+        self.heard.retain(|&(s, _)| s > t);
+        Ok(out)
+    }
+
+    /// Say where the steps spent their wall time (`geese::flow` target, debug level).
+    pub fn report_phases(&self) {
+        let c = &self.clock;
+        let ms = |d: Duration| d.as_secs_f64() * 1e3 / c.steps.max(1) as f64;
+        tracing::debug!(
+            target: "geese::flow",
+            "agents {}: {} steps; per step {:.3} ms percepts->genes sent, {:.3} ms gene wait, {:.3} ms finish+intents, {:.3} ms intents->next percept",
+            self.range, c.steps, ms(c.begin), ms(c.gene_wait), ms(c.finish), ms(c.between)
+        );
+    }
+}
+
+/// A message about one cell.
+trait Cell {
+    fn cell(&self) -> u32;
+}
+impl Cell for Percept {
+    fn cell(&self) -> u32 {
+        self.cell
+    }
+}
+impl Cell for GeneBatchHead<'_> {
+    fn cell(&self) -> u32 {
+        self.cell
+    }
+}
