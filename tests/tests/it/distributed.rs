@@ -14,6 +14,15 @@ use std::path::PathBuf;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+/// Multi-process tests run one at a time (each starts up to twenty processes on a
+/// 2-core machine), whatever the test harness's thread count; other tests run beside
+/// them.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static ONE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    // A test that failed while holding it poisons it; the next may still run.
+    ONE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Directory holding freshly built geese-world and geese-agent (and geese).
 fn bin_dir() -> PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
@@ -86,8 +95,8 @@ fn step_reports(r: &[NetReport]) -> Vec<StepReport> {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
+    let _one_at_a_time = serial();
     // Paper layout: every agent starts at the hub, so genes cross processes from step 1.
     let cfg = config(20, 300, 5, Layout::Paper);
     let expected = in_process(&cfg);
@@ -104,8 +113,8 @@ fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn hosted_agents_and_perturbations_equal_in_process() {
+    let _one_at_a_time = serial();
     // Three processes hosting 8 agents each, small cells (agents change cell often),
     // and perturbations that kill agents and switch lateral transfer off and on.
     let mut cfg = config(24, 300, 9, Layout::Reference);
@@ -141,8 +150,8 @@ fn hosted_agents_and_perturbations_equal_in_process() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn genes_sent_ahead_equal_genes_sent_during_the_step_under_loss() {
+    let _one_at_a_time = serial();
     // An agent whose percept is dropped offers no gene that step. Its process knows so
     // a step early, when it sends the genes ahead (the loss draws are counter-based):
     // with every kind of loss, the trajectory is the one of genes sent during the step
@@ -168,8 +177,8 @@ fn genes_sent_ahead_equal_genes_sent_during_the_step_under_loss() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn gene_loss_half_is_seeded_and_nothing_deadlocks_under_loss() {
+    let _one_at_a_time = serial();
     let mut cfg = config(20, 300, 3, Layout::Paper);
     cfg.gene_loss = 0.5;
     // Gene loss is drawn by the receiving learner from its seeded stream: the same
@@ -202,8 +211,8 @@ fn gene_loss_half_is_seeded_and_nothing_deadlocks_under_loss() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
+    let _one_at_a_time = serial();
     // Long enough that a restarted process has time to start even on a loaded machine.
     let cfg = config(20, 1500, 7, Layout::Reference);
     let spec = cfg.clone().validate().expect("valid config");
@@ -264,8 +273,8 @@ fn killed_agent_processes_leave_survivors_stepping_and_restarted_ones_rejoin() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
+    let _one_at_a_time = serial();
     use geese_proto::keys::{self, AgentRange};
     use geese_proto::net::{GeneBatch, IntentBatch};
     use geese_proto::zenoh_bus::{self, Role};
@@ -416,8 +425,8 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn geese_run_processes_writes_the_same_csv_and_leaves_no_orphans() {
+    let _one_at_a_time = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     let geese = geese_tests::bin_path("geese-orchestrator", "geese");
     let bins = bin_dir();
@@ -505,8 +514,8 @@ fn wait_exit(child: &mut std::process::Child, within: Duration) -> bool {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn ctrl_c_or_sigkill_of_the_launcher_leaves_no_orphans() {
+    let _one_at_a_time = serial();
     // Ctrl-C (SIGINT to the launcher only): it stops the world and kills the rest.
     let dir = tempfile::tempdir().expect("tempdir");
     let (mut child, kids) = long_run(dir.path());
@@ -527,8 +536,8 @@ fn ctrl_c_or_sigkill_of_the_launcher_leaves_no_orphans() {
 /// effect from the step it was scheduled for, the manifest records it, the launcher ends
 /// cleanly with the results so far, and no process is left.
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn geese_control_perturbs_and_stops_a_running_world() {
+    let _one_at_a_time = serial();
     use std::io::BufRead;
     let dir = tempfile::tempdir().expect("tempdir");
     let geese = geese_tests::bin_path("geese-orchestrator", "geese");
@@ -612,8 +621,8 @@ fn geese_control_perturbs_and_stops_a_running_world() {
 }
 
 #[test]
-#[ignore = "multi-process Zenoh test: run by .ci/run in its own bounded, single-threaded step (a start-up hang was seen once)"]
 fn campaign_over_zenoh_equals_the_campaign_in_process() {
+    let _one_at_a_time = serial();
     use super::campaign::{quiet, Recorder};
     use geese_orchestrator::campaign::{run_campaign, Campaign, InProcess};
     use geese_orchestrator::launch::OverZenoh;
@@ -655,4 +664,36 @@ fn campaign_over_zenoh_equals_the_campaign_in_process() {
     assert_eq!(local.len(), 2);
     assert!(local.values().any(|r| r.iter().any(|s| s.live_agents < 12)), "the kill knob acted");
     assert_eq!(local, remote, "per-step reports (task %, digests) differ between transports");
+}
+
+#[test]
+fn fifty_trials_back_to_back_in_one_process_never_wait_on_a_deadline() {
+    let _one_at_a_time = serial();
+    // As `geese campaign --processes` does: trial after trial launched from one
+    // orchestrator process, each with its own world and three agent processes, hosting
+    // and cell-reading processes in turn. Nothing is lost, so no step may wait out a
+    // deadline (net.csv's intents_late, genes_late and percepts_missing stay 0), and
+    // each trial equals its in-process run.
+    let started = Instant::now();
+    let (mut steps, mut hits, mut slowest) = (0usize, 0u32, Duration::ZERO);
+    for i in 0..50u64 {
+        let layout = if i % 2 == 0 { Layout::Paper } else { Layout::Reference };
+        let cfg = config(12, 60, 100 + i, layout);
+        let mut opts = options(3, None);
+        opts.subscribe = Some(["all", "cells", "all,cells"][i as usize % 3].into());
+        let t = Instant::now();
+        let (reps, pids) = distributed(&cfg, &opts);
+        slowest = slowest.max(t.elapsed());
+        assert_eq!(step_reports(&reps), in_process(&cfg), "trial {i} differs from its in-process run");
+        steps += reps.len();
+        let trial_hits: u32 = reps.iter().map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing).sum();
+        assert_eq!(trial_hits, 0, "trial {i} waited out {trial_hits} deadlines");
+        hits += trial_hits;
+        assert_all_gone(&pids);
+    }
+    eprintln!(
+        "soak: 50 trials, {steps} steps, {hits} deadline hits, {:.1} s in all, slowest trial {:.2} s",
+        started.elapsed().as_secs_f64(),
+        slowest.as_secs_f64()
+    );
 }
