@@ -206,7 +206,7 @@ impl Server {
         match keys::parse(&self.run, key) {
             Parsed::AgentsPresence { agents } | Parsed::CellsPresence { agents } if agents.last as usize >= self.n => {
                 // A range beyond the run: never iterated, never counted as present.
-                tracing::warn!("presence token {key}: agents {agents} outside the run's {} agents; ignored", self.n);
+                tracing::debug!("presence token {key}: agents {agents} outside the run's {} agents; ignored", self.n);
                 self.count_rejected();
                 Released::default()
             }
@@ -255,7 +255,9 @@ impl Server {
             Ok(Control::Schedule { at_step, change }) => self.scheduled.push((at_step, change)),
             Ok(Control::Start) => {}
             Err(e) => {
-                tracing::warn!("control message dropped: {e}");
+                // One line per message at debug; the step's report counts them and
+                // says so once (a flood of hostile messages must not flood the log).
+                tracing::debug!("control message dropped: {e}");
                 self.count_rejected();
             }
         }
@@ -534,6 +536,12 @@ impl Server {
             report.missing_intents = (live - got.answered_expected.min(live)) as u32;
         }
         self.counters.processes = self.hosts.len() as u32;
+        if self.counters.hostile > 0 {
+            tracing::warn!(
+                "step {step}: {} hostile messages dropped (world and agent processes; RUST_LOG=debug names each)",
+                self.counters.hostile
+            );
+        }
         let msg = ReportMsg::Step(NetReport { report, net: self.counters });
         self.steps_done = step;
         self.phase = Phase::Between;
