@@ -335,6 +335,7 @@ impl Host {
                 return self.result(r);
             }
             if now >= deadline {
+                self.counters.deadline_hits += 1;
                 let late = self.pending.as_ref().map_or(0, |p| {
                     p.wait_for
                         .iter()
@@ -360,6 +361,9 @@ impl Host {
         }
         if self.collecting > self.done {
             let expired = self.collect_deadline.is_some_and(|d| now >= d);
+            if expired {
+                self.counters.deadline_hits += 1;
+            }
             if expired && !self.all_found() {
                 tracing::warn!(
                     "agents {}: step {}: percepts missing at the percept deadline ({} ms)",

@@ -624,7 +624,7 @@ impl Drop for RemoveOnDrop {
 
 /// Header of `net.csv`, the per-step network counters of a distributed run.
 pub const NET_CSV_HEADER: &str =
-    "step,processes,intents_lost,intents_late,percepts_lost,percepts_missing,genes_lost,genes_late,hostile,lt_mean,wait_us,genes_ahead";
+    "step,processes,intents_lost,intents_late,percepts_lost,percepts_missing,genes_lost,genes_late,hostile,lt_mean,wait_us,genes_ahead,deadline_hits";
 
 /// `geese run --processes N`: run, write `steps.csv`, `net.csv` and the manifest into
 /// `out`, print the same lines as an in-process run.
@@ -650,7 +650,7 @@ pub fn run_cli(spec: &RunSpec, opts: &NetOptions, out: &Path, quiet: bool) -> an
         let res = csv.write(rep).and_then(|_| {
             writeln!(
                 net,
-                "{},{},{},{},{},{},{},{},{},{},{},{}",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{}",
                 rep.step,
                 n.processes,
                 n.intents_lost,
@@ -662,7 +662,8 @@ pub fn run_cli(spec: &RunSpec, opts: &NetOptions, out: &Path, quiet: bool) -> an
                 n.hostile,
                 rep.lt_mean,
                 n.wait_us,
-                n.genes_ahead
+                n.genes_ahead,
+                n.deadline_hits
             )
         });
         if let Err(e) = res {

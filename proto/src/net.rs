@@ -366,6 +366,9 @@ pub struct HostCounters {
     pub genes_late: u32,
     /// Messages that did not decode, had the wrong version or claimed a foreign id.
     pub hostile: u32,
+    /// Waits of this process (for percepts, for cell-mates' genes) that ran to their
+    /// deadline, whatever had arrived by then.
+    pub deadline_hits: u32,
 }
 
 /// The intents of one agent process for one step.
@@ -401,6 +404,10 @@ pub struct NetCounters {
     /// Hosting processes that got the step's genes with their percepts (sent ahead,
     /// [`HostPercepts::genes`]).
     pub genes_ahead: u32,
+    /// Waits that ran to their deadline this step: the world's for intents, the agent
+    /// processes' for percepts and genes. A run that loses nothing has none; a wait that
+    /// ends at its deadline with everything in (a wake-up that never came) counts too.
+    pub deadline_hits: u32,
 }
 
 /// The world's report of one step in a distributed run.

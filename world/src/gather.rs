@@ -131,6 +131,7 @@ impl Gather {
         self.counters.percepts_missing = self.counters.percepts_missing.saturating_add(c.percepts_missing);
         self.counters.genes_late = self.counters.genes_late.saturating_add(c.genes_late);
         self.counters.hostile = self.counters.hostile.saturating_add(c.hostile);
+        self.counters.deadline_hits = self.counters.deadline_hits.saturating_add(c.deadline_hits);
         for id in batch.idle {
             if !from.contains(id) || id as usize >= self.n {
                 self.counters.hostile += 1;
@@ -268,7 +269,8 @@ mod tests {
     fn process_counters_are_summed_without_overflow() {
         let mut g = Gather::new(RUN, 2);
         g.begin(1, |_| true);
-        let c = HostCounters { percepts_lost: u32::MAX, percepts_missing: 1, genes_late: 2, hostile: 3 };
+        let c =
+            HostCounters { percepts_lost: u32::MAX, percepts_missing: 1, genes_late: 2, hostile: 3, deadline_hits: 1 };
         let b = |id| encode(&IntentBatch { step: 1, intents: vec![], idle: vec![id], counters: c }).unwrap();
         g.on_action(&key(0, 1), &b(0));
         g.on_action(&key(1, 1), &b(1));
@@ -276,5 +278,6 @@ mod tests {
         assert_eq!(got.counters.percepts_lost, u32::MAX);
         assert_eq!(got.counters.genes_late, 4);
         assert_eq!(got.counters.hostile, 6);
+        assert_eq!(got.counters.deadline_hits, 2);
     }
 }

@@ -340,15 +340,16 @@ impl Server {
                     if pending > 0 && now < deadline {
                         return Next::Wait(deadline);
                     }
-                    if pending > 0 {
-                        self.counters.intents_late = pending as u32;
-                        tracing::warn!(
-                            "step {}: {pending} intents missing at the deadline ({} ms)",
-                            self.world.step(),
-                            self.spec.deadlines.intent_ms
-                        );
-                        self.hub.trace_incomplete();
-                    }
+                    // At the deadline: a hit, whether intents are missing or the wake-up
+                    // that should have come with the last one never did.
+                    self.counters.deadline_hits += 1;
+                    self.counters.intents_late = pending as u32;
+                    tracing::warn!(
+                        "step {}: the intent deadline ({} ms) passed with {pending} intents missing",
+                        self.world.step(),
+                        self.spec.deadlines.intent_ms
+                    );
+                    self.hub.trace_incomplete();
                     self.counters.wait_us =
                         now.saturating_duration_since(started).as_micros().min(u32::MAX as u128) as u32;
                     return match self.finish_step() {
@@ -517,6 +518,7 @@ impl Server {
         c.percepts_lost = c.percepts_lost.saturating_add(got.counters.percepts_lost);
         c.percepts_missing = c.percepts_missing.saturating_add(got.counters.percepts_missing);
         c.genes_late = c.genes_late.saturating_add(got.counters.genes_late);
+        c.deadline_hits = c.deadline_hits.saturating_add(got.counters.deadline_hits);
         let mut intents = got.intents;
         // Injected intent loss (world side), one counter-based draw per arrived intent.
         let p = self.spec.loss.intent;
@@ -652,7 +654,7 @@ mod tests {
             assert!(answer(&mut s, b, step));
             let r = report(s.next(t0));
             assert_eq!(r.report.step, step);
-            assert_eq!((r.net.intents_late, r.net.hostile, r.net.processes), (0, 0, 2));
+            assert_eq!((r.net.intents_late, r.net.hostile, r.net.deadline_hits, r.net.processes), (0, 0, 0, 2));
             assert_eq!(r.report.missing_intents, 0);
         }
         match s.next(t0) {
@@ -674,7 +676,7 @@ mod tests {
         let deadline = t0 + Duration::from_millis(100);
         assert!(matches!(s.next(t0 + Duration::from_millis(99)), Next::Wait(d) if d == deadline));
         let r = report(s.next(deadline));
-        assert_eq!(r.net.intents_late, 2);
+        assert_eq!((r.net.intents_late, r.net.deadline_hits), (2, 1));
         assert_eq!(r.report.missing_intents, 2);
         assert!(r.net.wait_us >= 100_000);
         // A straggler of step 1 during step 2 is dropped, and not hostile.

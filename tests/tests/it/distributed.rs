@@ -108,6 +108,7 @@ fn zenoh_run_equals_in_process_run_20_processes_300_steps() {
     }
     let late: u32 = got.iter().map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing).sum();
     assert_eq!(late, 0);
+    assert_eq!(got.iter().map(|r| r.net.deadline_hits).sum::<u32>(), 0, "a wait ran to its deadline");
     assert!(got.iter().all(|r| r.net.processes == 20 && r.net.hostile == 0));
     assert_all_gone(&pids);
 }
@@ -686,7 +687,9 @@ fn fifty_trials_back_to_back_in_one_process_never_wait_on_a_deadline() {
         slowest = slowest.max(t.elapsed());
         assert_eq!(step_reports(&reps), in_process(&cfg), "trial {i} differs from its in-process run");
         steps += reps.len();
-        let trial_hits: u32 = reps.iter().map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing).sum();
+        let trial_hits: u32 = reps.iter().map(|r| r.net.deadline_hits).sum();
+        let late: u32 = reps.iter().map(|r| r.net.intents_late + r.net.genes_late + r.net.percepts_missing).sum();
+        assert_eq!(late, 0, "trial {i}: messages late");
         assert_eq!(trial_hits, 0, "trial {i} waited out {trial_hits} deadlines");
         hits += trial_hits;
         assert_all_gone(&pids);

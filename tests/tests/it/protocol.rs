@@ -240,7 +240,10 @@ fn hosting_processes_in_memory_equal_the_in_process_run_and_never_wait() {
     assert_eq!(net.finished, Some(true));
     assert_eq!(expected, reports(&net.reports));
     assert!(net.reports.iter().skip(1).all(|r| r.net.genes_ahead == 3), "genes went ahead from step 2 on");
-    assert!(net.reports.iter().all(|r| r.net.hostile + r.net.intents_late + r.net.genes_late == 0));
+    assert!(net
+        .reports
+        .iter()
+        .all(|r| r.net.hostile + r.net.intents_late + r.net.genes_late + r.net.deadline_hits == 0));
 }
 
 #[test]
@@ -259,6 +262,7 @@ fn cell_readers_and_hosting_processes_mixed_with_perturbations_equal_in_process(
     net.run(false);
     assert_eq!(expected, reports(&net.reports));
     assert!(net.reports.iter().all(|r| r.net.genes_ahead == 0), "no genes ahead past a cell reader");
+    assert!(net.reports.iter().all(|r| r.net.deadline_hits == 0));
     assert!(net.procs.iter().any(|p| !p.host.wide() && !p.cells.is_empty()));
 }
 
@@ -288,7 +292,7 @@ fn a_process_killed_mid_run_leaves_the_others_stepping_without_a_deadline() {
         assert_eq!(net.finished, Some(true));
         let after = &net.reports[31..];
         assert!(after.iter().all(|r| r.report.live_agents == 16 && r.net.processes == 2));
-        assert!(net.reports.iter().all(|r| r.net.intents_late == 0 && r.net.genes_late == 0));
+        assert!(net.reports.iter().all(|r| r.net.intents_late + r.net.genes_late + r.net.deadline_hits == 0));
     }
 }
 
@@ -346,7 +350,7 @@ fn a_host_whose_percept_never_comes_idles_at_the_percept_deadline_and_counts_it(
     assert_eq!(b.step, 1);
     assert_eq!(b.idle, vec![1]);
     assert_eq!(b.intents.len(), 1);
-    assert_eq!((b.counters.percepts_missing, b.counters.hostile), (1, 1));
+    assert_eq!((b.counters.percepts_missing, b.counters.hostile, b.counters.deadline_hits), (1, 1, 1));
     // A stale percept of step 1 after it is done changes nothing.
     host.absorb(Input::Percept { cell: p.cell, bytes: &encode(&p).unwrap() }, deadline);
     assert!(matches!(host.next(deadline), HostNext::Wait(None)));
