@@ -76,6 +76,8 @@ struct Rig {
     mate_genome: Arc<[u32]>,
     mate_mapping: GeneMapping,
     t: u64,
+    /// The gene the learner offered its cell-mates in the last step.
+    offered: Option<GeneMsg>,
 }
 
 impl Rig {
@@ -86,7 +88,7 @@ impl Rig {
         assert!(mate.valid());
         let mate_mapping = GeneMapping { valid: true, used_codons: mate.used_codons as u32, depth: mate.depth as u32 };
         let learner = Learner::new(ME, Arc::new(cfg), grammar, geom(), HUB, SEED);
-        Rig { learner, cache: GeneCache::new(), mate_genome: mate.genome, mate_mapping, t: 0 }
+        Rig { learner, cache: GeneCache::new(), mate_genome: mate.genome, mate_mapping, t: 0, offered: None }
     }
 
     /// One step: percept, genes of the cell-mates, intent.
@@ -108,8 +110,8 @@ impl Rig {
             nearby_impassable: vec![],
             agents,
         };
-        let offered = self.learner.begin_step(&percept);
-        assert_eq!(offered.is_some(), s.regime.lateral_transfer);
+        self.offered = self.learner.begin_step(&percept);
+        assert_eq!(self.offered.is_some(), s.regime.lateral_transfer);
         let genes: Vec<GeneMsg> = s
             .mates
             .iter()
@@ -249,6 +251,19 @@ fn paper_fitness_recursion_starts_from_d() {
 // ---------------------------------------------------------------------------------------
 // §6.2 step 6: lateral transfer, the IP filter and "more than one survivor"
 // ---------------------------------------------------------------------------------------
+
+/// §6.3: lateral transfer sends the genome with its fitness — the gene as it stands,
+/// with the fitness of the agent's last update.
+#[test]
+fn the_offered_gene_carries_its_current_fitness() {
+    let mut r = Rig::new(TWO_SELECTORS, cfg());
+    assert_eq!(r.step(&Step::at(cell(0))).stats.fitness, 2.0);
+    assert_eq!(r.step(&Step::at(cell(1))).stats.fitness, 3.0);
+    r.step(&Step::at(cell(1)).lt(0.0, &[7]));
+    let g = r.offered.clone().expect("offered while lateral transfer is on");
+    assert_eq!((g.from, g.step, g.fitness), (ME, 3, 3.0));
+    assert_eq!(g.genome, r.learner.gene().genome);
+}
 
 /// §6.2 step 6: an agent alone in its cell is its own only candidate; one survivor is
 /// not "more than one", so nothing joins the pool and ST is never reached.

@@ -490,3 +490,63 @@ fn composite_drop_at_the_site_teaches_the_site() {
     assert!(tick("CompositeDrop_Food", &mut v));
     assert_eq!(ids(v.memory.get(ObjectKind::Sites)), [2]);
 }
+
+/// §2.4 AvoidSObjects: the ray (agent → (⌈x + 3cosθ⌉, ⌈y + 3sinθ⌉)) is tested against the
+/// obstacle cell's edges in the order bottom, right, top, left, touching counts, and the
+/// first that meets it sets θ to its direction: 0, π/2, π, −π/2. At (30,1) the ray meets
+/// both the right edge (it starts on it) and the bottom edge (it ends on it): bottom
+/// wins.
+#[test]
+fn avoid_takes_the_first_edge_met_in_the_order_bottom_right_top_left() {
+    let sites = |x, y| object(4, ObjectKind::Sites, x, y);
+    let cases = [
+        ("MoveTowards_Sites", World::at(30, 1).knowing(site()), Pos::new(32, 1), 0.0),
+        ("MoveTowards_Hub", World::at(31, 5), Pos::new(31, 7), FRAC_PI_2),
+        ("MoveTowards_Hub", World::at(25, 10), Pos::new(23, 10), PI),
+        ("MoveTowards_Sites", World::at(19, 5).knowing(sites(45, 5)), Pos::new(19, 3), -FRAC_PI_2),
+    ];
+    for (text, w, to, h) in cases {
+        let from = w.pos;
+        let mut v = w.near(obstacle()).view();
+        assert!(tick(text, &mut v), "{text} from {from:?}");
+        assert_eq!(v.ops, [Op::Move { to, heading: h }], "{text} from {from:?}");
+        assert!(close(v.heading, h));
+    }
+}
+
+/// §2.4 AvoidSObjects always succeeds and leaves θ unchanged when the ray meets no edge —
+/// here the agent stands inside the obstacle's cell (obstacles may be placed over
+/// agents, §1.4), the ray stays inside it, and the move within the cell is allowed (§1.6).
+#[test]
+fn avoid_keeps_the_heading_when_the_ray_meets_no_edge() {
+    let mut v = World::at(25, 5).with(obstacle()).view();
+    assert!(tick("MoveTowards_Hub_Avoid", &mut v));
+    let aim = (-5f64).atan2(-25.0).rem_euclid(TAU);
+    assert_eq!(v.ops, [Op::Move { to: Pos::new(23, 5), heading: aim }]);
+}
+
+/// §1.8 + §2.3: the reference world is sequential and NeighbourObjects senses the cell
+/// the agent is in *now* — after its own moves earlier in the same tick. A GEESE-BT or
+/// Multi-GEESE tree with two actions (§3.4: up to three) can step into the site's cell
+/// and pick food there in one tick: Sequence[MoveTowards_Sites, CompositeSingleCarry_Food]
+/// from (−19,−25) moves to (−21,−26), inside the site's cell, which holds food.
+#[test]
+#[ignore = "REFERENCE §1.8/§2.3 say sensing reads the agent's current cell after its own moves in the same tick; \
+            the code senses only its start-of-step percept (DESIGN §2 snapshot), so in the new cell it sees only \
+            impassable objects and the pick FAILS (irrelevant to single-action BeTr-GEESE trees, §3.2)"]
+fn sensing_after_a_move_in_the_same_tick_sees_the_new_cell() {
+    use crate::bt::{Bt, Status};
+    use crate::ge::{CompositeKind, PNode};
+    let act = |t: &str| PNode::Leaf { text: t.into(), tag: "Act".into() };
+    let p = PNode::Composite {
+        kind: CompositeKind::Sequence,
+        children: vec![act("MoveTowards_Sites_Normal"), act("CompositeSingleCarry_Food")],
+    };
+    let mut bt = Bt::from_pnode(&p).expect("tree");
+    // The world: the site's cell holds the site and food 10; the agent's own cell is empty,
+    // so that is what its percept shows.
+    let mut v = World::at(-19, -25).knowing(site()).view();
+    assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Success);
+    assert_eq!(v.pos, Pos::new(-21, -26));
+    assert!(v.ops.contains(&Op::Pick { object: 10 }));
+}

@@ -8,8 +8,10 @@
 //! - [`learner`](self::learner): the per-step order, stagnation rule, IP "more than one
 //!   survivor" rule and the R/fitness update of §6.2–6.5.
 //!
-//! The expectations are the REFERENCE's, not the code's current output. A test the code
-//! does not (yet) satisfy is marked `#[ignore = "REFERENCE §… says …; code does …"]`.
+//! The expectations are the REFERENCE's, not the code's current output: where the code
+//! disagreed, the test would assert the REFERENCE and be marked
+//! `#[ignore = "REFERENCE §… says …; code does …"]` (none is, at present). Each test was
+//! checked to fail when the behaviour it names is broken (a mutation of the code).
 use crate::view::View;
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::{AgentPublic, Geometry, ObjectId, ObjectInfo, ObjectKind, Percept, Pos, Regime};
