@@ -26,3 +26,5 @@ pub mod leaves;
 pub mod view;
 
 pub use learner::{FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig};
+#[cfg(test)]
+mod tests;
