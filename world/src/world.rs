@@ -1,7 +1,7 @@
 //! Authoritative world state: objects, agent bodies, grid registration, percepts,
 //! intent resolution, task percentage and scheduled perturbations.
 use crate::config::{ConfigError, Task, WorldConfig};
-use geese_proto::geometry::step_destination;
+use geese_proto::rules::{self, DropOutcome};
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
     AgentId, AgentPublic, CellIdx, GeneticTrigger, Geometry, Intent, ObjectId, ObjectInfo, ObjectKind, Op, Percept,
@@ -10,16 +10,8 @@ use geese_proto::{
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-/// Agent body constants (REFERENCE §1.5).
-pub const AGENT_RADIUS: i32 = 3;
-pub const AGENT_WEIGHT: i32 = 5;
-pub const AGENT_FORCE: i32 = 10;
-pub const AGENT_CAPACITY: i32 = 10;
-
-/// Step length of an agent carrying `carried_weight` (force / total weight).
-pub fn speed(carried_weight: i32) -> f64 {
-    AGENT_FORCE as f64 / (AGENT_WEIGHT + carried_weight) as f64
-}
+/// Agent body constants (REFERENCE §1.5) and the step length, shared with the agents.
+pub use geese_proto::rules::{speed, AGENT_CAPACITY, AGENT_FORCE, AGENT_RADIUS, AGENT_WEIGHT};
 
 /// A non-agent object and its bookkeeping.
 #[derive(Clone, Debug)]
@@ -144,11 +136,7 @@ impl World {
     // ---------------------------------------------------------------- construction
 
     pub(crate) fn add_object(&mut self, kind: ObjectKind, pos: Pos, radius: i32) -> ObjectId {
-        let (weight, capacity) = match kind {
-            ObjectKind::Food => (radius / 2, radius / 2),
-            ObjectKind::Debris => (5, radius / 2),
-            _ => (0, 0),
-        };
+        let (weight, capacity) = rules::item_load(kind, radius);
         let id = self.objects.len() as ObjectId;
         let info = ObjectInfo { id, kind, pos, radius, weight, capacity };
         self.objects.push(Object { info, registered: false, dropped: Vec::new() });
@@ -369,8 +357,9 @@ impl World {
         Ok(refused)
     }
 
-    fn carried_weight(&self, id: AgentId) -> i32 {
-        self.bodies[id as usize].carrying.iter().map(|&o| self.objects[o as usize].info.weight).sum()
+    /// The objects agent `id` carries.
+    fn carried(&self, id: AgentId) -> impl Iterator<Item = &ObjectInfo> {
+        self.bodies[id as usize].carrying.iter().map(|&o| &self.objects[o as usize].info)
     }
 
     fn apply_move(&mut self, id: AgentId, to: Pos, heading: f64) -> Result<(), Rejection> {
@@ -378,7 +367,8 @@ impl World {
             return Err(Rejection::BadHeading);
         }
         let from = self.bodies[id as usize].pos;
-        let (dest, new_heading) = step_destination(&self.geom, from, heading, speed(self.carried_weight(id)));
+        let (dest, new_heading) =
+            rules::destination(&self.geom, from, heading, rules::carried_weight(self.carried(id)));
         if dest != to {
             return Err(Rejection::BadMove { to, heading });
         }
@@ -424,9 +414,7 @@ impl World {
             }
         };
         let o = &self.objects[object as usize];
-        // IsSingleCarry: free capacity must exceed the item's weight.
-        let used: i32 = self.bodies[id as usize].carrying.iter().map(|&c| self.objects[c as usize].info.capacity).sum();
-        if AGENT_CAPACITY - used <= o.info.weight {
+        if !rules::is_single_carry(self.carried(id), &o.info) {
             return Err(Rejection::NotCarryable(object));
         }
         self.deregister_object(object);
@@ -442,22 +430,11 @@ impl World {
         let pos = b.pos;
         let cell = self.geom.cell_of(pos);
         let kind = self.objects[object as usize].info.kind;
-        let has = |k: ObjectKind| self.objects_in(cell).any(|o| o.kind == k);
-        let first = |k: ObjectKind| self.objects_in(cell).find(|o| o.kind == k).map(|o| o.id);
         // Final (type-aware) drop rules, REFERENCE §2.4.
-        let target: Option<ObjectId> = if kind == ObjectKind::Food {
-            if has(ObjectKind::Boundary) || has(ObjectKind::Obstacles) {
-                return Err(Rejection::Blocked);
-            }
-            if has(ObjectKind::Hub) && has(ObjectKind::Debris) {
-                return Err(Rejection::Blocked);
-            }
-            first(ObjectKind::Hub)
-        } else {
-            if has(ObjectKind::Hub) || has(ObjectKind::Obstacles) {
-                return Err(Rejection::Blocked);
-            }
-            first(ObjectKind::Boundary)
+        let target: Option<ObjectId> = match rules::drop_rule(kind, |k| self.objects_in(cell).any(|o| o.kind == k)) {
+            DropOutcome::Refused => return Err(Rejection::Blocked),
+            DropOutcome::Into(k) => self.objects_in(cell).find(|o| o.kind == k).map(|o| o.id),
+            DropOutcome::Floor => None,
         };
         self.bodies[id as usize].carrying.remove(slot);
         self.objects[object as usize].info.pos = pos;
