@@ -224,9 +224,7 @@ mod tests {
         let mut c = RunConfig::default();
         c.world.width = 20_000;
         assert_eq!(invalid_of(c).0, "world.width");
-        let mut c = RunConfig::default();
-        c.ip = f64::NAN;
-        assert_eq!(invalid_of(c).0, "ip");
+        assert_eq!(invalid_of(RunConfig { ip: f64::NAN, ..Default::default() }).0, "ip");
     }
 
     #[test]
