@@ -346,11 +346,10 @@ fn did_avoided(v: &View, k: ObjectKind) -> bool {
     (v.heading - alpha).abs() >= FRAC_PI_2
 }
 
-/// IsSingleCarry: free capacity must exceed the item's weight.
+/// IsSingleCarry on the first found object of `k` (the rule the world applies).
 fn is_single_carry(v: &View, k: ObjectKind) -> bool {
     let Some(o) = v.find(k).first() else { return false };
-    let used: i32 = v.carrying.iter().map(|c| c.capacity).sum();
-    o.weight > 0 && 10 - used > o.weight
+    geese_proto::rules::is_single_carry(&v.carrying, o)
 }
 
 /// SingleCarry: take the first found object; FAILURE if it is gone.

@@ -4,8 +4,11 @@
 //! impassable objects nearby, plus the agent's own static memory and blackboard. Leaf
 //! behaviours read and change this model; every change the world must make is recorded
 //! as an [`Op`] for the intent. Nothing here touches the real world.
-use geese_proto::geometry::step_destination;
+use geese_proto::rules::{self, DropOutcome};
 use geese_proto::{AgentId, CellIdx, Geometry, ObjectId, ObjectInfo, ObjectKind, Op, Percept, Pos};
+
+/// Step length of an agent whose carried objects weigh `w` (the rule the world applies).
+pub use geese_proto::rules::speed;
 
 /// Per-agent maps indexed by object kind.
 #[derive(Clone, Debug, Default)]
@@ -75,11 +78,6 @@ pub struct View {
     pub ops: Vec<Op>,
 }
 
-/// Step length of an agent whose carried objects weigh `w` (force 10 / (5 + w)).
-pub fn speed(carried_weight: i32) -> f64 {
-    10.0 / (5 + carried_weight) as f64
-}
-
 impl View {
     pub fn new(geom: Geometry, id: AgentId) -> Self {
         View {
@@ -124,10 +122,7 @@ impl View {
 
     /// Is `o` registered in `cell` (its neighbourhood covers the cell)?
     pub fn registered_in(&self, o: &ObjectInfo, cell: CellIdx) -> bool {
-        let (c, r) = self.geom.cell_col_row(cell);
-        let (oc, or) = self.geom.col_row(o.pos);
-        let s = if o.radius <= self.geom.grid { 0 } else { o.radius / self.geom.grid };
-        (c - oc).abs() <= s && (r - or).abs() <= s
+        self.geom.registered_in(o.pos, o.radius, cell)
     }
 
     /// Non-agent objects registered in the agent's current cell, as far as it knows:
@@ -154,13 +149,13 @@ impl View {
     }
 
     pub fn carried_weight(&self) -> i32 {
-        self.carrying.iter().map(|o| o.weight).sum()
+        rules::carried_weight(&self.carrying)
     }
 
     /// The Move primitive (REFERENCE §1.6). Records the op on success.
     pub fn do_move(&mut self) -> bool {
         let before = self.heading;
-        let (dest, h) = step_destination(&self.geom, self.pos, before, speed(self.carried_weight()));
+        let (dest, h) = rules::destination(&self.geom, self.pos, before, self.carried_weight());
         let (old_c, new_c) = (self.cell(), self.geom.cell_of(dest));
         if old_c != new_c && self.cell_blocked(new_c) {
             return false;
@@ -190,20 +185,10 @@ impl View {
         let Some(slot) = self.carrying.iter().position(|o| o.kind == kind) else {
             return false;
         };
-        let has = |k: ObjectKind| self.objects_here().any(|o| o.kind == k);
-        let into_target = if kind == ObjectKind::Food {
-            if has(ObjectKind::Boundary) || has(ObjectKind::Obstacles) {
-                return false;
-            }
-            if has(ObjectKind::Hub) && has(ObjectKind::Debris) {
-                return false;
-            }
-            has(ObjectKind::Hub)
-        } else {
-            if has(ObjectKind::Hub) || has(ObjectKind::Obstacles) {
-                return false;
-            }
-            has(ObjectKind::Boundary)
+        let into_target = match rules::drop_rule(kind, |k| self.objects_here().any(|o| o.kind == k)) {
+            DropOutcome::Refused => return false,
+            DropOutcome::Into(_) => true,
+            DropOutcome::Floor => false,
         };
         let mut o = self.carrying.remove(slot);
         o.pos = self.pos;

@@ -62,6 +62,13 @@ pub struct CampaignFile {
     pub grid: Vec<toml::Table>,
 }
 
+/// Most seeds per (condition, task).
+pub const MAX_SEEDS: u32 = 10_000;
+/// Most conditions a campaign may have (each `[[grid]]` product, and their union).
+pub const MAX_CONDITIONS: usize = 10_000;
+/// Most trials a campaign may plan (conditions × tasks × seeds).
+pub const MAX_TRIALS: u64 = 1_000_000;
+
 fn one() -> u64 {
     1
 }
@@ -151,6 +158,9 @@ impl Campaign {
         if file.seeds == 0 {
             return Err(invalid("seeds", "must be at least 1"));
         }
+        if file.seeds > MAX_SEEDS {
+            return Err(invalid("seeds", format!("{} exceeds {MAX_SEEDS}", file.seeds)));
+        }
         if file.first_seed.checked_add(file.seeds as u64).is_none() {
             return Err(invalid("first_seed", "too large"));
         }
@@ -161,6 +171,18 @@ impl Campaign {
             return Err(invalid("step_stride", "must be at least 1"));
         }
         let conditions = expand_grid(&file.grid)?;
+        let trials = conditions.len() as u64 * file.tasks.len() as u64 * u64::from(file.seeds);
+        if trials > MAX_TRIALS {
+            return Err(invalid(
+                "seeds",
+                format!(
+                    "{} conditions × {} tasks × {} seeds = {trials} trials exceed {MAX_TRIALS}",
+                    conditions.len(),
+                    file.tasks.len(),
+                    file.seeds
+                ),
+            ));
+        }
         let coupling =
             Coupling { lt_pause_on_obstacles: file.lt_pause_on_obstacles, stop_interval: file.stop_interval };
         let pick = |key: &str, v: &Option<String>| -> Result<Option<Knob>, CampaignError> {
@@ -303,7 +325,9 @@ fn level_position(conditions: &[Condition], knob: Option<Knob>, condition: usize
     }
 }
 
-/// Expand the `[[grid]]` tables into conditions (union of Cartesian products).
+/// Expand the `[[grid]]` tables into conditions (union of Cartesian products). Each
+/// product and the union have at most [`MAX_CONDITIONS`] conditions; a product's size
+/// is checked before it is built.
 pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError> {
     if grid.is_empty() {
         return Err(invalid("grid", "no conditions: add a [[grid]] table with at least one knob"));
@@ -337,6 +361,14 @@ pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError
             axes.push((knob, levels));
         }
         axes.sort_by_key(|(k, _)| *k);
+        let size = axes.iter().try_fold(1usize, |n, (_, levels)| n.checked_mul(levels.len()));
+        if size.is_none_or(|n| n > MAX_CONDITIONS) {
+            let sizes: Vec<String> = axes.iter().map(|(k, l)| format!("{} {k}", l.len())).collect();
+            return Err(invalid(
+                format!("grid[{gi}]"),
+                format!("{} levels make more than {MAX_CONDITIONS} conditions", sizes.join(" × ")),
+            ));
+        }
         // Cartesian product, first axis slowest.
         let mut conds = vec![Condition::default()];
         for (k, levels) in &axes {
@@ -354,6 +386,9 @@ pub fn expand_grid(grid: &[toml::Table]) -> Result<Vec<Condition>, CampaignError
             if labels.insert(c.label()) {
                 out.push(c);
             }
+        }
+        if out.len() > MAX_CONDITIONS {
+            return Err(invalid("grid", format!("{} conditions exceed {MAX_CONDITIONS}", out.len())));
         }
     }
     Ok(out)
@@ -635,6 +670,39 @@ mod tests {
         assert!(err(&format!("{head}[base]\nsteps = 100\n[[grid]]\nkill = 0.5\nkill_at = 100\n")).contains("kill_at"));
         assert!(err(&format!("{head}[[grid]]\ngrid = [7]\n")).contains("grid"));
         assert!(err(&format!("{head}[[grid]]\ngrammar = \"no-such-grammar\"\n")).contains("no-such-grammar"));
+    }
+
+    /// `n` distinct levels of the `ip` knob.
+    fn ips(n: usize) -> String {
+        let v: Vec<String> = (0..n).map(|i| format!("{}", i as f64 / n as f64)).collect();
+        format!("ip = [{}]\n", v.join(", "))
+    }
+
+    /// `n` distinct levels of the `st` knob.
+    fn sts(n: usize) -> String {
+        let v: Vec<String> = (4..4 + n).map(|i| i.to_string()).collect();
+        format!("st = [{}]\n", v.join(", "))
+    }
+
+    #[test]
+    fn campaign_sizes_are_bounded() {
+        let seeds = |n: u32| format!("tasks = [\"foraging\"]\nseeds = {n}\n[[grid]]\nip = 0.9\n");
+        assert!(Campaign::from_toml(&seeds(MAX_SEEDS), "t").is_ok());
+        let e = err(&seeds(MAX_SEEDS + 1));
+        assert!(e.contains("seeds: 10001 exceeds 10000"), "{e}");
+        assert!(err(&seeds(u32::MAX)).contains("seeds: 4294967295 exceeds"));
+
+        // A product of 101 × 100 levels is refused before it is built.
+        let head = "tasks = [\"foraging\"]\nseeds = 1\nx = \"condition\"\n";
+        let e = err(&format!("{head}[[grid]]\n{}{}", ips(101), sts(100)));
+        assert!(e.contains("grid[0]: 101 ip × 100 st levels make more than 10000 conditions"), "{e}");
+        // Two tables of 6,000 each: the union is too large.
+        let e = err(&format!("{head}[[grid]]\n{}{}[[grid]]\n{}{}", ips(60), sts(100), ips(61), sts(100)));
+        assert!(e.contains("grid: 12000 conditions exceed 10000"), "{e}");
+        // Conditions × tasks × seeds.
+        let text = format!("tasks = [\"foraging\", \"nest\"]\nseeds = 10000\nx = \"condition\"\n[[grid]]\n{}", ips(51));
+        let e = err(&text);
+        assert!(e.contains("seeds: 51 conditions × 2 tasks × 10000 seeds = 1020000 trials exceed 1000000"), "{e}");
     }
 
     #[test]

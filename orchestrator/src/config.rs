@@ -5,6 +5,7 @@
 //! `deny_unknown_fields`); out-of-range values are errors that name the field.
 use geese_agent::ge::Grammar;
 use geese_agent::{grammars, LearnerConfig};
+use geese_proto::limits::{check_max, MAX_SCHEDULED, MAX_STEPS};
 use geese_proto::{Perturbation, Regime};
 use geese_world::{Task, WorldConfig};
 use serde::{Deserialize, Serialize};
@@ -110,10 +111,17 @@ impl RunConfig {
         Regime { lateral_transfer: self.lateral_transfer, ip: self.ip, gene_loss: self.gene_loss }
     }
 
-    /// Check every value and load the grammar.
+    /// Check every value and load the grammar. Sizes have upper limits
+    /// ([`geese_proto::limits`]): at most 10,000,000 steps and 10,000 scheduled
+    /// perturbations, each checked as a control command would be
+    /// ([`geese_proto::Perturbation::validate`]); the world's limits are
+    /// [`WorldConfig::validate`]'s.
     pub fn validate(self) -> Result<RunSpec, ConfigError> {
         if self.steps == 0 {
             return Err(invalid("steps", "must be at least 1"));
+        }
+        if self.steps > MAX_STEPS {
+            return Err(invalid("steps", format!("{} exceeds {MAX_STEPS}", self.steps)));
         }
         if !(0.0..=1.0).contains(&self.ip) {
             return Err(invalid("ip", format!("interaction probability {} is outside [0, 1]", self.ip)));
@@ -124,19 +132,19 @@ impl RunConfig {
         if !(0.0..=100.0).contains(&self.threshold) {
             return Err(invalid("threshold", "must lie in [0, 100]"));
         }
-        self.world.validate().map_err(|e| invalid("world", e.to_string()))?;
+        let geom = self.world.validate().map_err(|geese_world::ConfigError::Invalid { field, reason }| {
+            invalid(&format!("world.{field}"), reason)
+        })?;
         self.learner.validate().map_err(|e| invalid("learner", e.to_string()))?;
+        if self.perturbations.len() > MAX_SCHEDULED {
+            return Err(invalid(
+                "perturbations",
+                format!("{} scheduled changes exceed {MAX_SCHEDULED}", self.perturbations.len()),
+            ));
+        }
         for (i, p) in self.perturbations.iter().enumerate() {
-            let bad = match &p.change {
-                Perturbation::SetIp(v) | Perturbation::SetGeneLoss(v) | Perturbation::KillFraction(v) => {
-                    !(0.0..=1.0).contains(v)
-                }
-                Perturbation::AddObstacles { radius, .. } => *radius <= 0,
-                Perturbation::SetLateralTransfer(_) => false,
-            };
-            if bad {
-                return Err(invalid(&format!("perturbations[{i}].change"), "value out of range"));
-            }
+            check_max("at", p.at, MAX_STEPS).map_err(|e| invalid(&format!("perturbations[{i}].at"), e.to_string()))?;
+            p.change.validate(&geom).map_err(|e| invalid(&format!("perturbations[{i}].change"), e.to_string()))?;
         }
         let name = self.grammar_name();
         let (grammar, text) = load_grammar(&name)?;
@@ -171,6 +179,52 @@ mod tests {
         assert!(e.contains("bogus"), "{e}");
         let e = RunConfig::from_toml("[world]\ngrid_size = 5\n").unwrap_err();
         assert!(e.contains("grid_size"), "{e}");
+    }
+
+    fn invalid_of(c: RunConfig) -> (String, String) {
+        match c.validate().map(|_| ()).unwrap_err() {
+            ConfigError::Invalid { field, reason } => (field, reason),
+            other => panic!("not an invalid value: {other}"),
+        }
+    }
+
+    #[test]
+    fn steps_and_schedules_are_bounded() {
+        let ok = |c: RunConfig| c.validate().map(|_| ()).map_err(|e| e.to_string());
+        assert_eq!(ok(RunConfig { steps: MAX_STEPS, ..Default::default() }), Ok(()));
+        let (f, r) = invalid_of(RunConfig { steps: MAX_STEPS + 1, ..Default::default() });
+        assert_eq!((f.as_str(), r.as_str()), ("steps", "10000001 exceeds 10000000"));
+        let (f, _) = invalid_of(RunConfig { steps: u64::MAX, ..Default::default() });
+        assert_eq!(f, "steps");
+
+        let at = |at, change| Scheduled { at, change };
+        let one = |s: Scheduled| RunConfig { perturbations: vec![s], ..Default::default() };
+        assert_eq!(ok(one(at(MAX_STEPS, Perturbation::AddObstacles { count: 1000, radius: 100 }))), Ok(()));
+        let (f, r) = invalid_of(one(at(5, Perturbation::AddObstacles { count: u32::MAX, radius: 10 })));
+        assert_eq!((f.as_str(), r.as_str()), ("perturbations[0].change", "AddObstacles.count 4294967295 exceeds 1000"));
+        let (f, r) = invalid_of(one(at(5, Perturbation::AddObstacles { count: 1, radius: 101 })));
+        assert_eq!(f, "perturbations[0].change");
+        assert!(r.starts_with("AddObstacles.radius 101 exceeds 100"), "{r}");
+        let (f, r) = invalid_of(one(at(5, Perturbation::SetIp(f64::NAN))));
+        assert_eq!((f.as_str(), r.as_str()), ("perturbations[0].change", "SetIp NaN is not in [0, 1]"));
+        let (f, _) = invalid_of(one(at(MAX_STEPS + 1, Perturbation::SetIp(0.5))));
+        assert_eq!(f, "perturbations[0].at");
+        let many = vec![at(5, Perturbation::SetLateralTransfer(true)); MAX_SCHEDULED + 1];
+        let (f, _) = invalid_of(RunConfig { perturbations: many.clone(), ..Default::default() });
+        assert_eq!(f, "perturbations");
+        assert_eq!(ok(RunConfig { perturbations: many[1..].to_vec(), ..Default::default() }), Ok(()));
+    }
+
+    #[test]
+    fn world_sizes_are_named_by_key() {
+        let mut c = RunConfig::default();
+        c.world.agents = 2_000_000;
+        let (f, r) = invalid_of(c);
+        assert_eq!((f.as_str(), r.as_str()), ("world.agents", "2000000 exceeds 1000000"));
+        let mut c = RunConfig::default();
+        c.world.width = 20_000;
+        assert_eq!(invalid_of(c).0, "world.width");
+        assert_eq!(invalid_of(RunConfig { ip: f64::NAN, ..Default::default() }).0, "ip");
     }
 
     #[test]

@@ -5,11 +5,12 @@
 //! without having planned it in the configuration. The world already applies a
 //! [`Control::Schedule`] received on `geese/<run>/ctl/schedule` between two steps,
 //! exactly as a perturbation from the configuration (REFERENCE §8.4); this command asks
-//! the world which step it is at, checks the request against it and publishes it.
+//! the world which step it is at and what its arena is, checks the request against them
+//! with the rule the world applies ([`Control::validate`]) and publishes it.
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
-use geese_proto::{encode, keys, Control, Perturbation};
+use geese_proto::{encode, keys, Control, Geometry, InvalidCommand, Perturbation};
 use std::time::Duration;
 
 #[derive(Args, Debug)]
@@ -63,15 +64,22 @@ pub struct ChangeArgs {
     pub kill: Option<f64>,
 }
 
-fn probability(name: &str, p: f64) -> Result<f64> {
-    if !(0.0..=1.0).contains(&p) {
-        bail!("--{name} {p}: must be a probability in [0, 1]");
+/// The flag of a field [`Control::validate`] refused.
+fn flag(e: &InvalidCommand) -> &'static str {
+    match e.field.split('.').next() {
+        Some("AddObstacles") => "--add-obstacles",
+        Some("SetIp") => "--ip",
+        Some("SetGeneLoss") => "--gene-loss",
+        Some("KillFraction") => "--kill",
+        Some("Schedule") => "--at",
+        _ => "the command",
     }
-    Ok(p)
 }
 
 impl ChangeArgs {
-    /// The perturbation asked for, validated; errors name the flag.
+    /// The perturbation asked for, parsed; errors name the flag. Its values are checked
+    /// against the world's arena by [`message`] ([`Perturbation::validate`]); here only
+    /// what would change nothing (no obstacle, no agent killed) is refused as well.
     pub fn perturbation(&self) -> Result<Perturbation> {
         if let Some(spec) = &self.add_obstacles {
             let (count, radius) = match spec.split_once(':') {
@@ -84,13 +92,13 @@ impl ChangeArgs {
                 .trim()
                 .parse()
                 .with_context(|| format!("--add-obstacles {spec:?}: RADIUS must be an integer"))?;
-            if count == 0 || radius <= 0 {
-                bail!("--add-obstacles {spec:?}: COUNT and RADIUS must be positive");
+            if count == 0 {
+                bail!("--add-obstacles {spec:?}: COUNT 0 adds nothing");
             }
             return Ok(Perturbation::AddObstacles { count, radius });
         }
         if let Some(p) = self.ip {
-            return Ok(Perturbation::SetIp(probability("ip", p)?));
+            return Ok(Perturbation::SetIp(p));
         }
         if let Some(v) = &self.lateral_transfer {
             return match v.as_str() {
@@ -100,11 +108,11 @@ impl ChangeArgs {
             };
         }
         if let Some(p) = self.gene_loss {
-            return Ok(Perturbation::SetGeneLoss(probability("gene-loss", p)?));
+            return Ok(Perturbation::SetGeneLoss(p));
         }
         if let Some(f) = self.kill {
-            if !(f > 0.0 && f <= 1.0) {
-                bail!("--kill {f}: must be a fraction in (0, 1]");
+            if f == 0.0 {
+                bail!("--kill 0: kills nothing");
             }
             return Ok(Perturbation::KillFraction(f));
         }
@@ -112,8 +120,9 @@ impl ChangeArgs {
     }
 }
 
-/// Build the control message for a world that runs `next_step` next.
-pub fn message(cmd: &ControlCmd, next_step: u64) -> Result<(&'static str, Control)> {
+/// Build the control message for a world of geometry `geom` that runs `next_step` next,
+/// checked as the world checks it ([`Control::validate`]); errors name the flag.
+pub fn message(cmd: &ControlCmd, next_step: u64, geom: &Geometry) -> Result<(&'static str, Control)> {
     match cmd {
         ControlCmd::Stop => Ok(("stop", Control::Stop)),
         ControlCmd::Perturb { at, change } => {
@@ -122,7 +131,9 @@ pub fn message(cmd: &ControlCmd, next_step: u64) -> Result<(&'static str, Contro
             if at_step < next_step {
                 bail!("--at {at_step}: the world is already at step {next_step}; choose a step ≥ {next_step}");
             }
-            Ok(("schedule", Control::Schedule { at_step, change }))
+            let msg = Control::Schedule { at_step, change };
+            msg.validate(geom).map_err(|e| anyhow::anyhow!("{}: {e}", flag(&e)))?;
+            Ok(("schedule", msg))
         }
     }
 }
@@ -137,7 +148,7 @@ pub fn control_cmd(args: ControlArgs) -> Result<()> {
         let result = async {
             let (info, _) =
                 zenoh_bus::fetch_run_info(&session, &args.run, Duration::from_millis(args.timeout_ms)).await?;
-            let (what, msg) = message(&args.cmd, info.next_step)?;
+            let (what, msg) = message(&args.cmd, info.next_step, &info.geometry)?;
             zenoh_bus::put(&session, &keys::ctl(&args.run, what), encode(&msg)?).await?;
             println!("geese control: sent {msg:?} to run {} (world at step {})", args.run, info.next_step);
             anyhow::Ok(())
@@ -158,18 +169,39 @@ mod tests {
         ChangeArgs { add_obstacles: None, ip: None, lateral_transfer: None, gene_loss: None, kill: None }
     }
 
+    fn arena() -> Geometry {
+        Geometry::new(100, 100, 10).unwrap()
+    }
+
+    /// The error of perturbing with `c` a world at step 1.
+    fn refused(c: ChangeArgs) -> String {
+        message(&ControlCmd::Perturb { at: None, change: c }, 1, &arena()).unwrap_err().to_string()
+    }
+
     #[test]
     fn changes_are_validated_and_named() {
         let c = ChangeArgs { add_obstacles: Some("3:5".into()), ..change() };
         assert_eq!(c.perturbation().unwrap(), Perturbation::AddObstacles { count: 3, radius: 5 });
         let c = ChangeArgs { add_obstacles: Some("2".into()), ..change() };
         assert_eq!(c.perturbation().unwrap(), Perturbation::AddObstacles { count: 2, radius: 10 });
-        for bad in ["x", "2:y", "0", "2:-1"] {
-            let e = ChangeArgs { add_obstacles: Some(bad.into()), ..change() }.perturbation().unwrap_err();
-            assert!(e.to_string().contains("--add-obstacles"), "{e}");
+        for bad in ["x", "2:y", "0", "2:-1", "4294967295:10", "1000000000000", "1:101"] {
+            let e = refused(ChangeArgs { add_obstacles: Some(bad.into()), ..change() });
+            assert!(e.contains("--add-obstacles"), "{bad}: {e}");
         }
-        let e = ChangeArgs { ip: Some(1.5), ..change() }.perturbation().unwrap_err();
-        assert!(e.to_string().contains("--ip"), "{e}");
+        assert_eq!(
+            refused(ChangeArgs { add_obstacles: Some("4294967295:10".into()), ..change() }),
+            "--add-obstacles: AddObstacles.count 4294967295 exceeds 1000"
+        );
+        for bad in [1.5, -0.1, f64::NAN, f64::INFINITY] {
+            assert!(refused(ChangeArgs { ip: Some(bad), ..change() }).starts_with("--ip: SetIp"), "{bad}");
+            assert!(refused(ChangeArgs { gene_loss: Some(bad), ..change() }).starts_with("--gene-loss: SetGeneLoss"));
+            assert!(refused(ChangeArgs { kill: Some(bad), ..change() }).starts_with("--kill: KillFraction"));
+        }
+        let e = refused(ChangeArgs { ip: Some(f64::NAN), ..change() });
+        assert_eq!(e, "--ip: SetIp NaN is not in [0, 1]");
+        let e = ChangeArgs { ip: Some(1.5), ..change() };
+        let e = message(&ControlCmd::Perturb { at: Some(u64::MAX), change: e }, 1, &arena()).unwrap_err();
+        assert!(e.to_string().starts_with("--at: Schedule.at_step 18446744073709551615 exceeds"), "{e}");
         let e = ChangeArgs { lateral_transfer: Some("maybe".into()), ..change() }.perturbation().unwrap_err();
         assert!(e.to_string().contains("--lateral-transfer"), "{e}");
         assert_eq!(
@@ -178,17 +210,19 @@ mod tests {
         );
         let e = ChangeArgs { kill: Some(0.0), ..change() }.perturbation().unwrap_err();
         assert!(e.to_string().contains("--kill"), "{e}");
+        let ok = ChangeArgs { add_obstacles: Some("1000:100".into()), ..change() };
+        assert!(message(&ControlCmd::Perturb { at: None, change: ok }, 1, &arena()).is_ok());
     }
 
     #[test]
     fn schedule_defaults_to_the_next_step_and_refuses_the_past() {
         let cmd = ControlCmd::Perturb { at: None, change: ChangeArgs { ip: Some(0.5), ..change() } };
         assert_eq!(
-            message(&cmd, 42).unwrap(),
+            message(&cmd, 42, &arena()).unwrap(),
             ("schedule", Control::Schedule { at_step: 42, change: Perturbation::SetIp(0.5) })
         );
         let past = ControlCmd::Perturb { at: Some(10), change: ChangeArgs { ip: Some(0.5), ..change() } };
-        assert!(message(&past, 42).unwrap_err().to_string().contains("already at step 42"));
-        assert_eq!(message(&ControlCmd::Stop, 7).unwrap(), ("stop", Control::Stop));
+        assert!(message(&past, 42, &arena()).unwrap_err().to_string().contains("already at step 42"));
+        assert_eq!(message(&ControlCmd::Stop, 7, &arena()).unwrap(), ("stop", Control::Stop));
     }
 }

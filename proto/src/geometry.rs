@@ -2,6 +2,7 @@
 //!
 //! Both the world (which registers objects) and the agents (which reason about obstacle
 //! footprints) need the exact same integer arithmetic, so it lives in the contract.
+use crate::limits::{MAX_ARENA_SIDE, MAX_CELLS};
 use serde::{Deserialize, Serialize};
 
 /// An integer position; the origin is the centre of the arena.
@@ -20,13 +21,33 @@ impl Pos {
 /// 0-based, row-major cell index (the reference's 1-based id minus one).
 pub type CellIdx = u32;
 
-/// Arena width/height and grid size. Validated on construction: (W/2) and (H/2) must be
-/// multiples of the grid size, as the reference requires.
+/// Arena width/height and grid size. Validated on construction, and when decoded (a
+/// geometry also arrives over the network, in the world's run information): (W/2) and
+/// (H/2) must be multiples of the grid size, as the reference requires; W and H at most
+/// [`MAX_ARENA_SIDE`], at most [`MAX_CELLS`] cells. Within these limits every cell index
+/// and coordinate product below fits in `i32`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "GeometryFields")]
 pub struct Geometry {
     pub width: i32,
     pub height: i32,
     pub grid: i32,
+}
+
+/// The fields of a [`Geometry`] as encoded (the same encoding), checked by
+/// [`Geometry::new`] on decoding.
+#[derive(Deserialize)]
+struct GeometryFields {
+    width: i32,
+    height: i32,
+    grid: i32,
+}
+
+impl TryFrom<GeometryFields> for Geometry {
+    type Error = GeometryError;
+    fn try_from(f: GeometryFields) -> Result<Self, GeometryError> {
+        Geometry::new(f.width, f.height, f.grid)
+    }
 }
 
 /// Why a geometry is not usable.
@@ -34,8 +55,24 @@ pub struct Geometry {
 pub enum GeometryError {
     #[error("arena width and height must be positive and even, got {width}x{height}")]
     BadArena { width: i32, height: i32 },
+    #[error("arena {field} {value} exceeds {max}")]
+    TooLarge { field: &'static str, value: i32, max: i32 },
     #[error("grid size {grid} must be positive and divide half the arena ({half_w} and {half_h})")]
     BadGrid { grid: i32, half_w: i32, half_h: i32 },
+    #[error("grid size {grid} makes {cells} cells, more than {max}")]
+    TooManyCells { grid: i32, cells: u64, max: u64 },
+}
+
+impl GeometryError {
+    /// The key at fault: `width`, `height` or `grid`.
+    pub fn field(&self) -> &'static str {
+        match self {
+            GeometryError::BadArena { width, .. } if *width > 0 && width % 2 == 0 => "height",
+            GeometryError::BadArena { .. } => "width",
+            GeometryError::TooLarge { field, .. } => field,
+            GeometryError::BadGrid { .. } | GeometryError::TooManyCells { .. } => "grid",
+        }
+    }
 }
 
 impl Geometry {
@@ -43,9 +80,18 @@ impl Geometry {
         if width <= 0 || height <= 0 || width % 2 != 0 || height % 2 != 0 {
             return Err(GeometryError::BadArena { width, height });
         }
+        for (field, value) in [("width", width), ("height", height)] {
+            if value > MAX_ARENA_SIDE {
+                return Err(GeometryError::TooLarge { field, value, max: MAX_ARENA_SIDE });
+            }
+        }
         let (half_w, half_h) = (width / 2, height / 2);
         if grid <= 0 || half_w % grid != 0 || half_h % grid != 0 {
             return Err(GeometryError::BadGrid { grid, half_w, half_h });
+        }
+        let cells = (width / grid) as u64 * (height / grid) as u64;
+        if cells > MAX_CELLS {
+            return Err(GeometryError::TooManyCells { grid, cells, max: MAX_CELLS });
         }
         Ok(Geometry { width, height, grid })
     }
@@ -64,8 +110,9 @@ impl Geometry {
     pub fn rows(&self) -> i32 {
         self.height / self.grid
     }
+    /// Number of cells (widened: the product is computed in `usize`).
     pub fn cell_count(&self) -> usize {
-        (self.cols() * self.rows()) as usize
+        self.cols() as usize * self.rows() as usize
     }
 
     /// Column/row of a point: floor division, points at or beyond the +edge go to the
@@ -109,13 +156,43 @@ impl Geometry {
     /// cells within ⌊r/GS⌋ columns and rows, clipped at the arena edge. Calls `f` for each
     /// cell in row-major order.
     pub fn for_each_neighbourhood_cell(&self, p: Pos, radius: i32, mut f: impl FnMut(CellIdx)) {
+        self.any_neighbourhood_cell(p, radius, |c| {
+            f(c);
+            false
+        });
+    }
+
+    /// Does `f` hold for a cell of N(p, r)? Tries the cells in row-major order and stops
+    /// at the first that does.
+    pub fn any_neighbourhood_cell(&self, p: Pos, radius: i32, mut f: impl FnMut(CellIdx) -> bool) -> bool {
         let (c0, r0) = self.col_row(p);
-        let s = if radius <= self.grid { 0 } else { radius / self.grid };
-        for r in (r0 - s).max(0)..=(r0 + s).min(self.rows() - 1) {
-            for c in (c0 - s).max(0)..=(c0 + s).min(self.cols() - 1) {
-                f((r * self.cols() + c) as CellIdx);
+        let s = self.reach(radius);
+        for r in (r0 - s).max(0)..=r0.saturating_add(s).min(self.rows() - 1) {
+            for c in (c0 - s).max(0)..=c0.saturating_add(s).min(self.cols() - 1) {
+                if f((r * self.cols() + c) as CellIdx) {
+                    return true;
+                }
             }
         }
+        false
+    }
+
+    /// How many columns and rows beyond its own cell an object of `radius` is registered
+    /// in: 0 when r ≤ GS, otherwise ⌊r/GS⌋ (REFERENCE §1.2).
+    pub fn reach(&self, radius: i32) -> i32 {
+        if radius <= self.grid {
+            0
+        } else {
+            radius / self.grid
+        }
+    }
+
+    /// Is an object at `p` of `radius` registered in `cell` (does N(p, r) hold it)?
+    pub fn registered_in(&self, p: Pos, radius: i32, cell: CellIdx) -> bool {
+        let (c, r) = self.cell_col_row(cell);
+        let (oc, or) = self.col_row(p);
+        let s = self.reach(radius);
+        (c - oc).abs() <= s && (r - or).abs() <= s
     }
 
     /// The cells of N(p, r) as a vector (row-major).
@@ -129,9 +206,9 @@ impl Geometry {
     /// obstacle-avoidance ray test (REFERENCE §2.4).
     pub fn neighbourhood_box(&self, p: Pos, radius: i32) -> (i32, i32, i32, i32) {
         let (c0, r0) = self.col_row(p);
-        let s = if radius <= self.grid { 0 } else { radius / self.grid };
-        let (cl, ch) = ((c0 - s).max(0), (c0 + s).min(self.cols() - 1));
-        let (rl, rh) = ((r0 - s).max(0), (r0 + s).min(self.rows() - 1));
+        let s = self.reach(radius);
+        let (cl, ch) = ((c0 - s).max(0), c0.saturating_add(s).min(self.cols() - 1));
+        let (rl, rh) = ((r0 - s).max(0), r0.saturating_add(s).min(self.rows() - 1));
         let g = self.grid;
         (cl * g - self.half_w(), rl * g - self.half_h(), (ch + 1) * g - self.half_w(), (rh + 1) * g - self.half_h())
     }
@@ -266,5 +343,72 @@ mod tests {
     fn bad_geometry_is_an_error() {
         assert!(Geometry::new(100, 100, 7).is_err());
         assert!(Geometry::new(0, 100, 10).is_err());
+        assert_eq!(Geometry::new(100, 101, 10).unwrap_err().field(), "height");
+        assert_eq!(Geometry::new(-2, 100, 10).unwrap_err().field(), "width");
+        assert_eq!(Geometry::new(100, 100, 7).unwrap_err().field(), "grid");
+    }
+
+    #[test]
+    fn arena_size_and_cell_count_are_bounded() {
+        // At the limits.
+        let g = Geometry::new(MAX_ARENA_SIDE, MAX_ARENA_SIDE, 10).unwrap();
+        assert_eq!(g.cell_count() as u64, MAX_CELLS);
+        assert!(Geometry::new(MAX_ARENA_SIDE, 100, 1).is_ok());
+        // Above them, naming the key.
+        let e = Geometry::new(MAX_ARENA_SIDE + 2, 100, 1).unwrap_err();
+        assert_eq!((e.field(), e.to_string()), ("width", "arena width 10002 exceeds 10000".to_string()));
+        assert_eq!(Geometry::new(100, i32::MAX - 1, 1).unwrap_err().field(), "height");
+        let e = Geometry::new(MAX_ARENA_SIDE, MAX_ARENA_SIDE, 5).unwrap_err();
+        assert_eq!(e.field(), "grid");
+        assert!(e.to_string().contains("4000000 cells"), "{e}");
+    }
+
+    #[test]
+    fn cell_count_is_widened_and_cells_fit() {
+        // An unchecked geometry (public fields) whose cell count overflows i32.
+        let g = Geometry { width: 100_000, height: 100_000, grid: 1 };
+        assert_eq!(g.cell_count(), 10_000_000_000);
+        let g = Geometry::new(MAX_ARENA_SIDE, 100, 1).unwrap();
+        let corner = Pos::new(MAX_ARENA_SIDE / 2, 50);
+        assert_eq!(g.cell_of(corner) as usize, g.cell_count() - 1);
+    }
+
+    #[test]
+    fn huge_radii_are_clipped_not_overflowed() {
+        let g = Geometry::new(100, 100, 1).unwrap();
+        let mut n = 0;
+        g.for_each_neighbourhood_cell(Pos::new(49, 49), i32::MAX, |_| n += 1);
+        assert_eq!(n, g.cell_count());
+        assert_eq!(g.neighbourhood_box(Pos::new(49, 49), i32::MAX), (-50, -50, 50, 50));
+        let mut seen = 0;
+        assert!(g.any_neighbourhood_cell(Pos::new(0, 0), 5, |c| {
+            seen += 1;
+            c == g.cell_of(Pos::new(0, 0))
+        }));
+        assert!(seen < 121, "stops at the first hit");
+    }
+
+    #[test]
+    fn registration_rule() {
+        let g = Geometry::new(100, 100, 10).unwrap();
+        for radius in [3, 10, 11, 25] {
+            let cells = g.neighbourhood(Pos::new(12, -31), radius);
+            for cell in 0..g.cell_count() as CellIdx {
+                assert_eq!(g.registered_in(Pos::new(12, -31), radius, cell), cells.contains(&cell), "{radius} {cell}");
+            }
+        }
+    }
+
+    #[test]
+    fn decoding_checks_the_geometry() {
+        let g = Geometry::new(100, 60, 10).unwrap();
+        let bytes = postcard::to_stdvec(&g).unwrap();
+        assert_eq!(postcard::from_bytes::<Geometry>(&bytes), Ok(g));
+        // Same encoding as three plain i32 fields.
+        assert_eq!(bytes, postcard::to_stdvec(&(100i32, 60i32, 10i32)).unwrap());
+        for bad in [(100i32, 60i32, 7i32), (i32::MAX - 1, 2, 1), (0, 0, 0)] {
+            let bytes = postcard::to_stdvec(&bad).unwrap();
+            assert!(postcard::from_bytes::<Geometry>(&bytes).is_err(), "{bad:?}");
+        }
     }
 }

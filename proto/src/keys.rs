@@ -66,6 +66,12 @@ impl AgentRange {
     pub fn ids(&self) -> std::ops::RangeInclusive<u32> {
         self.first..=self.last
     }
+    /// Does the range lie within the ids of a run of `agents` agents (`0..agents`)? A
+    /// key naming a range outside it (a presence token for `0-4294967295`, say) is
+    /// hostile or stale: reject it before iterating its ids.
+    pub fn within(&self, agents: u32) -> bool {
+        self.last < agents
+    }
     /// Parse a key chunk (`7` or `0-99`); `None` for anything else.
     pub fn parse(chunk: &str) -> Option<Self> {
         let num = |s: &str| -> Option<u32> {
@@ -233,6 +239,25 @@ pub enum Parsed {
     Other,
 }
 
+impl Parsed {
+    /// The agent range a key names, if any.
+    pub fn agents(&self) -> Option<AgentRange> {
+        match *self {
+            Parsed::Genes { from, .. } => from,
+            Parsed::Action { from } | Parsed::GeneBundle { from } => Some(from),
+            Parsed::HostPercepts { to } | Parsed::HostGenes { to } => Some(to),
+            Parsed::AgentsPresence { agents } | Parsed::CellsPresence { agents } => Some(agents),
+            Parsed::Percept { .. } | Parsed::WorldPresence | Parsed::OrchestratorPresence | Parsed::Other => None,
+        }
+    }
+
+    /// False if the key names an agent range not within a run of `agents` agents
+    /// ([`AgentRange::within`]); true for keys that name none.
+    pub fn within(&self, agents: u32) -> bool {
+        self.agents().is_none_or(|r| r.within(agents))
+    }
+}
+
 /// Parse a key expression of run `run`; anything unexpected is [`Parsed::Other`].
 pub fn parse(run: &str, key: &str) -> Parsed {
     let Some(rest) = key.strip_prefix("geese/").and_then(|k| k.strip_prefix(run)).and_then(|k| k.strip_prefix('/'))
@@ -338,6 +363,31 @@ mod tests {
         super::tally(&mut tokens, many, false);
         assert!(tokens.is_empty());
         assert!(super::valid_run_name("geese-1.a_b"));
+    }
+
+    #[test]
+    fn ranges_outside_the_run_are_refused() {
+        use super::{parse, AgentRange, Parsed};
+        let r = |s: &str| AgentRange::parse(s).unwrap();
+        // A run of 10 agents: ids 0..=9.
+        assert!(r("0-9").within(10));
+        assert!(r("9").within(10));
+        assert!(!r("10").within(10));
+        assert!(!r("5-10").within(10));
+        assert!(!r("0-4294967295").within(10));
+        assert!(!r("0").within(0));
+        assert!(r("0-4294967294").within(u32::MAX));
+        let hostile = parse("r", "geese/r/presence/agents/0-4294967295");
+        assert_eq!(hostile.agents(), Some(r("0-4294967295")));
+        assert!(!hostile.within(10));
+        assert!(parse("r", &super::agents_presence("r", r("0-9"))).within(10));
+        assert!(!parse("r", &super::cells_presence("r", r("3-12"))).within(10));
+        assert!(!parse("r", &super::agents_action("r", r("10"))).within(10));
+        assert!(!parse("r", &super::host_genes("r", r("8-11"))).within(10));
+        assert!(!parse("r", &super::cell_genes_from("r", 1, 1, r("99"))).within(10));
+        assert_eq!(parse("r", &super::world_presence("r")).agents(), None);
+        assert!(parse("r", &super::world_presence("r")).within(0));
+        assert!(Parsed::Other.within(0));
         assert!(!super::valid_run_name("a/b") && !super::valid_run_name("*") && !super::valid_run_name(""));
     }
 }

@@ -10,6 +10,9 @@
 //! - [`geometry`]: positions, arena size and the exact grid-cell arithmetic both sides use.
 //! - [`message`]: percepts, genes, intents, step reports, control commands.
 //! - [`keys`]: the key expressions of every topic, defined once.
+//! - [`rules`]: the rules world and agents must agree on (speed, capacity, drops).
+//! - [`limits`]: limits on what crosses a trust boundary, and the checks of control
+//!   commands against them.
 //! - [`codec`]: the versioned envelope and its decode errors.
 //! - [`membus`]: the in-memory transport.
 //! - [`seed`]: named random streams and portable digests.
@@ -19,13 +22,16 @@
 pub mod codec;
 pub mod geometry;
 pub mod keys;
+pub mod limits;
 pub mod membus;
 pub mod message;
 pub mod net;
+pub mod rules;
 pub mod seed;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_bus;
 
 pub use codec::{decode, encode, encode_sized, CodecError, WIRE_VERSION};
 pub use geometry::{CellIdx, Geometry, Pos};
+pub use limits::InvalidCommand;
 pub use message::*;

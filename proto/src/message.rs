@@ -318,7 +318,8 @@ pub struct StepReport {
     pub digest: u64,
 }
 
-/// Orchestrator → world/agents commands.
+/// Orchestrator → world/agents commands. They cross a trust boundary: a receiver checks
+/// one with [`Control::validate`] (limits in [`crate::limits`]) before acting on it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Control {
     Start,
@@ -330,7 +331,9 @@ pub enum Control {
     },
 }
 
-/// A run-time change of the world or the swarm (REFERENCE §8.4, §8.6).
+/// A run-time change of the world or the swarm (REFERENCE §8.4, §8.6). Checked by
+/// [`Perturbation::validate`] wherever one comes from (configuration, `geese control`,
+/// the control plane).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Perturbation {
     /// Add `count` obstacles of `radius` by the obstacle placement rule; they stay.

@@ -1,5 +1,6 @@
 //! World configuration. Every field defaults to the setting of the reference runs
 //! (REFERENCE.md §1.4, §5.1); `validate` turns bad values into errors naming the field.
+use geese_proto::limits::{max_radius, MAX_AGENTS, MAX_ITEMS};
 use geese_proto::{Geometry, Pos};
 use serde::{Deserialize, Serialize};
 
@@ -115,20 +116,23 @@ fn bad(field: &'static str, reason: impl Into<String>) -> ConfigError {
 }
 
 impl WorldConfig {
-    /// Check every field; the error names the first bad one.
+    /// Check every field; the error names the first bad one. Sizes have upper limits
+    /// ([`geese_proto::limits`]): width and height at most 10,000, at most 1,000,000
+    /// cells, agents and items at most 1,000,000 each, obstacle radius at most the
+    /// larger side of the arena.
     pub fn validate(&self) -> Result<Geometry, ConfigError> {
-        let geom = Geometry::new(self.width, self.height, self.grid).map_err(|e| match e {
-            geese_proto::geometry::GeometryError::BadArena { .. } => bad("width", e.to_string()),
-            geese_proto::geometry::GeometryError::BadGrid { .. } => bad("grid", e.to_string()),
-        })?;
+        let geom = Geometry::new(self.width, self.height, self.grid).map_err(|e| bad(e.field(), e.to_string()))?;
         if self.agents == 0 {
             return Err(bad("agents", "need at least one agent"));
         }
-        if self.agents > 1_000_000 {
-            return Err(bad("agents", "at most 1,000,000 agents"));
+        if self.agents > MAX_AGENTS {
+            return Err(bad("agents", format!("{} exceeds {MAX_AGENTS}", self.agents)));
         }
         if let Some(0) = self.items {
             return Err(bad("items", "need at least one item"));
+        }
+        if self.item_count() > MAX_ITEMS {
+            return Err(bad("items", format!("{} exceeds {MAX_ITEMS}", self.item_count())));
         }
         if !geom.contains(self.site) {
             return Err(bad("site", format!("{:?} lies outside the arena", self.site)));
@@ -148,8 +152,14 @@ impl WorldConfig {
         if self.obstacle_radius <= 0 {
             return Err(bad("obstacle_radius", "must be positive"));
         }
+        if self.obstacle_radius > max_radius(&geom) {
+            return Err(bad(
+                "obstacle_radius",
+                format!("{} exceeds {} (the larger side of the arena)", self.obstacle_radius, max_radius(&geom)),
+            ));
+        }
         if self.obstacles > 100 {
-            return Err(bad("obstacles", "at most 100 initial obstacles"));
+            return Err(bad("obstacles", format!("{} exceeds 100 initial obstacles", self.obstacles)));
         }
         if geom.half_w().min(geom.half_h()) <= 25 && self.obstacles > 0 {
             return Err(bad("obstacles", "the obstacle rule needs an arena wider than 50"));
@@ -166,5 +176,55 @@ impl WorldConfig {
             Layout::Reference => Start::Random,
             Layout::Paper => Start::Hub,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use geese_proto::limits::{MAX_ARENA_SIDE, MAX_CELLS};
+
+    fn field_of(cfg: WorldConfig) -> (&'static str, String) {
+        let e = cfg.validate().unwrap_err();
+        let msg = e.to_string();
+        let ConfigError::Invalid { field, .. } = e;
+        (field, msg)
+    }
+
+    #[test]
+    fn sizes_are_accepted_at_the_limit() {
+        let big = WorldConfig { width: MAX_ARENA_SIDE, height: MAX_ARENA_SIDE, grid: 10, ..Default::default() };
+        assert_eq!(big.validate().unwrap().cell_count() as u64, MAX_CELLS);
+        let many = WorldConfig { agents: MAX_AGENTS, items: Some(MAX_ITEMS), ..Default::default() };
+        assert!(many.validate().is_ok());
+        assert!(WorldConfig { agents: MAX_AGENTS, items: None, ..Default::default() }.validate().is_ok());
+        assert!(WorldConfig { obstacle_radius: 100, ..Default::default() }.validate().is_ok());
+    }
+
+    #[test]
+    fn sizes_above_the_limit_name_the_key() {
+        let cases = [
+            (WorldConfig { width: MAX_ARENA_SIDE + 2, ..Default::default() }, "width", "10002"),
+            (WorldConfig { height: i32::MAX - 1, ..Default::default() }, "height", "2147483646"),
+            (WorldConfig { height: 101, ..Default::default() }, "height", "100x101"),
+            (
+                WorldConfig { width: MAX_ARENA_SIDE, height: MAX_ARENA_SIDE, grid: 5, ..Default::default() },
+                "grid",
+                "4000000",
+            ),
+            (WorldConfig { grid: 7, ..Default::default() }, "grid", "7"),
+            (WorldConfig { agents: MAX_AGENTS + 1, ..Default::default() }, "agents", "1000001"),
+            (WorldConfig { items: Some(MAX_ITEMS + 1), ..Default::default() }, "items", "1000001"),
+            (WorldConfig { agents: u32::MAX, items: Some(5), ..Default::default() }, "agents", "4294967295"),
+            (WorldConfig { obstacle_radius: 101, ..Default::default() }, "obstacle_radius", "101"),
+            (WorldConfig { obstacle_radius: i32::MAX, ..Default::default() }, "obstacle_radius", "2147483647"),
+            (WorldConfig { obstacles: 101, ..Default::default() }, "obstacles", "101"),
+        ];
+        for (cfg, key, value) in cases {
+            let (field, msg) = field_of(cfg);
+            assert_eq!(field, key, "{msg}");
+            assert!(msg.starts_with(&format!("world.{key}: ")), "{msg}");
+            assert!(msg.contains(value), "{msg} should name {value}");
+        }
     }
 }

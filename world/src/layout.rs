@@ -10,9 +10,16 @@ pub const BIG_RADIUS: i32 = 10;
 /// Attempts before a placement rule gives up (the reference retries forever).
 const MAX_ATTEMPTS: u32 = 10_000;
 
+/// Number of angles of the placement rules.
+const ANGLES: u32 = 36;
+
 /// One of the 36 angles of `linspace(0, 2π, 36)` (both 0 and 2π occur).
 fn angle(rng: &mut ChaCha8Rng) -> f64 {
-    let i = rng.random_range(0..36u32);
+    angle_at(rng.random_range(0..ANGLES))
+}
+
+/// The `i`-th angle of `linspace(0, 2π, 36)`.
+fn angle_at(i: u32) -> f64 {
     std::f64::consts::TAU * i as f64 / 35.0
 }
 
@@ -39,17 +46,40 @@ fn place_ring(w: &mut World, rng: &mut ChaCha8Rng, kind: ObjectKind, d: i32) -> 
 
 /// Obstacle rule: distance from {25, 30, …} below W/2, one of the 36 angles, redrawn
 /// while a non-agent object is registered in its neighbourhood. `None` if no place.
+///
+/// Bounded: nothing changes between two draws, so a place refused once is refused
+/// again. Each (distance, angle) is examined at most once, and the rule gives up when
+/// all of them have been refused or after [`MAX_ATTEMPTS`] draws. A place whose block
+/// of cells meets the hub's is refused without looking at the cells (the hub is always
+/// registered). The draws are those of the plain rule, so a place found is the same.
 pub fn place_obstacle(w: &mut World, rng: &mut ChaCha8Rng, radius: i32) -> Option<ObjectId> {
-    let half = w.geometry().half_w().min(w.geometry().half_h());
+    let g = w.geometry();
+    let half = g.half_w().min(g.half_h());
     let steps = ((half - 25) + 4) / 5; // arange(25, half, 5)
     if steps <= 0 {
         return None;
     }
+    let hub = w.hub();
+    let (hx1, hy1, hx2, hy2) = g.neighbourhood_box(hub.pos, hub.radius);
+    let mut refused = vec![false; steps as usize * ANGLES as usize];
+    let mut left = refused.len();
     for _ in 0..MAX_ATTEMPTS {
-        let d = 25 + 5 * rng.random_range(0..steps);
-        let p = polar(Pos::new(0, 0), d as f64, angle(rng));
-        if !w.area_has_objects(p, radius) {
+        let k = rng.random_range(0..steps);
+        let i = rng.random_range(0..ANGLES);
+        let slot = k as usize * ANGLES as usize + i as usize;
+        if refused[slot] {
+            continue;
+        }
+        let p = polar(Pos::new(0, 0), f64::from(25 + 5 * k), angle_at(i));
+        let (x1, y1, x2, y2) = g.neighbourhood_box(p, radius);
+        let meets_hub = x1 < hx2 && hx1 < x2 && y1 < hy2 && hy1 < y2;
+        if !meets_hub && !w.area_has_objects(p, radius) {
             return Some(w.add_object(ObjectKind::Obstacles, p, radius));
+        }
+        refused[slot] = true;
+        left -= 1;
+        if left == 0 {
+            return None;
         }
     }
     None

@@ -1,7 +1,7 @@
 //! Authoritative world state: objects, agent bodies, grid registration, percepts,
 //! intent resolution, task percentage and scheduled perturbations.
 use crate::config::{ConfigError, Task, WorldConfig};
-use geese_proto::geometry::step_destination;
+use geese_proto::rules::{self, DropOutcome};
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
     AgentId, AgentPublic, CellIdx, GeneticTrigger, Geometry, Intent, ObjectId, ObjectInfo, ObjectKind, Op, Percept,
@@ -10,16 +10,8 @@ use geese_proto::{
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-/// Agent body constants (REFERENCE §1.5).
-pub const AGENT_RADIUS: i32 = 3;
-pub const AGENT_WEIGHT: i32 = 5;
-pub const AGENT_FORCE: i32 = 10;
-pub const AGENT_CAPACITY: i32 = 10;
-
-/// Step length of an agent carrying `carried_weight` (force / total weight).
-pub fn speed(carried_weight: i32) -> f64 {
-    AGENT_FORCE as f64 / (AGENT_WEIGHT + carried_weight) as f64
-}
+/// Agent body constants (REFERENCE §1.5) and the step length, shared with the agents.
+pub use geese_proto::rules::{speed, AGENT_CAPACITY, AGENT_FORCE, AGENT_RADIUS, AGENT_WEIGHT};
 
 /// A non-agent object and its bookkeeping.
 #[derive(Clone, Debug)]
@@ -87,6 +79,8 @@ pub struct World {
     perturb_rng: ChaCha8Rng,
     total_item_weight: i32,
     delivered_weight: i32,
+    /// Obstacles that perturbations asked for and the placement rule could not place.
+    obstacles_unplaced: u64,
 }
 
 impl World {
@@ -105,6 +99,7 @@ impl World {
             perturb_rng: ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Perturb)),
             total_item_weight: 0,
             delivered_weight: 0,
+            obstacles_unplaced: 0,
             cfg,
         };
         let mut rng = ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Layout));
@@ -140,15 +135,16 @@ impl World {
     pub fn live_agents(&self) -> u32 {
         self.bodies.iter().filter(|b| b.live).count() as u32
     }
+    /// Obstacles that perturbations asked for and the obstacle rule could not place, over
+    /// the whole run (each shortfall is also logged).
+    pub fn obstacles_unplaced(&self) -> u64 {
+        self.obstacles_unplaced
+    }
 
     // ---------------------------------------------------------------- construction
 
     pub(crate) fn add_object(&mut self, kind: ObjectKind, pos: Pos, radius: i32) -> ObjectId {
-        let (weight, capacity) = match kind {
-            ObjectKind::Food => (radius / 2, radius / 2),
-            ObjectKind::Debris => (5, radius / 2),
-            _ => (0, 0),
-        };
+        let (weight, capacity) = rules::item_load(kind, radius);
         let id = self.objects.len() as ObjectId;
         let info = ObjectInfo { id, kind, pos, radius, weight, capacity };
         self.objects.push(Object { info, registered: false, dropped: Vec::new() });
@@ -211,11 +207,7 @@ impl World {
 
     /// Is any non-agent object registered in any cell of N(p, r)?
     pub(crate) fn area_has_objects(&self, p: Pos, r: i32) -> bool {
-        let mut any = false;
-        self.geom.for_each_neighbourhood_cell(p, r, |c| {
-            any |= !self.cells[c as usize].objects.is_empty();
-        });
-        any
+        self.geom.any_neighbourhood_cell(p, r, |c| !self.cells[c as usize].objects.is_empty())
     }
 
     fn cell_blocked(&self, cell: CellIdx) -> bool {
@@ -369,8 +361,9 @@ impl World {
         Ok(refused)
     }
 
-    fn carried_weight(&self, id: AgentId) -> i32 {
-        self.bodies[id as usize].carrying.iter().map(|&o| self.objects[o as usize].info.weight).sum()
+    /// The objects agent `id` carries.
+    fn carried(&self, id: AgentId) -> impl Iterator<Item = &ObjectInfo> {
+        self.bodies[id as usize].carrying.iter().map(|&o| &self.objects[o as usize].info)
     }
 
     fn apply_move(&mut self, id: AgentId, to: Pos, heading: f64) -> Result<(), Rejection> {
@@ -378,7 +371,8 @@ impl World {
             return Err(Rejection::BadHeading);
         }
         let from = self.bodies[id as usize].pos;
-        let (dest, new_heading) = step_destination(&self.geom, from, heading, speed(self.carried_weight(id)));
+        let (dest, new_heading) =
+            rules::destination(&self.geom, from, heading, rules::carried_weight(self.carried(id)));
         if dest != to {
             return Err(Rejection::BadMove { to, heading });
         }
@@ -424,9 +418,7 @@ impl World {
             }
         };
         let o = &self.objects[object as usize];
-        // IsSingleCarry: free capacity must exceed the item's weight.
-        let used: i32 = self.bodies[id as usize].carrying.iter().map(|&c| self.objects[c as usize].info.capacity).sum();
-        if AGENT_CAPACITY - used <= o.info.weight {
+        if !rules::is_single_carry(self.carried(id), &o.info) {
             return Err(Rejection::NotCarryable(object));
         }
         self.deregister_object(object);
@@ -442,22 +434,11 @@ impl World {
         let pos = b.pos;
         let cell = self.geom.cell_of(pos);
         let kind = self.objects[object as usize].info.kind;
-        let has = |k: ObjectKind| self.objects_in(cell).any(|o| o.kind == k);
-        let first = |k: ObjectKind| self.objects_in(cell).find(|o| o.kind == k).map(|o| o.id);
         // Final (type-aware) drop rules, REFERENCE §2.4.
-        let target: Option<ObjectId> = if kind == ObjectKind::Food {
-            if has(ObjectKind::Boundary) || has(ObjectKind::Obstacles) {
-                return Err(Rejection::Blocked);
-            }
-            if has(ObjectKind::Hub) && has(ObjectKind::Debris) {
-                return Err(Rejection::Blocked);
-            }
-            first(ObjectKind::Hub)
-        } else {
-            if has(ObjectKind::Hub) || has(ObjectKind::Obstacles) {
-                return Err(Rejection::Blocked);
-            }
-            first(ObjectKind::Boundary)
+        let target: Option<ObjectId> = match rules::drop_rule(kind, |k| self.objects_in(cell).any(|o| o.kind == k)) {
+            DropOutcome::Refused => return Err(Rejection::Blocked),
+            DropOutcome::Into(k) => self.objects_in(cell).find(|o| o.kind == k).map(|o| o.id),
+            DropOutcome::Floor => None,
         };
         self.bodies[id as usize].carrying.remove(slot);
         self.objects[object as usize].info.pos = pos;
@@ -516,17 +497,27 @@ impl World {
         }
     }
 
-    /// Apply a perturbation now.
-    pub fn perturb(&mut self, change: Perturbation) {
+    /// Apply a perturbation now. Returns how many of the obstacles it adds could not be
+    /// placed (0 for other changes): the obstacle rule found no free place for one, so
+    /// it stops there, counts the rest as unplaced ([`World::obstacles_unplaced`]) and
+    /// logs a warning. The arena holds only so many obstacles, so this bounds the work
+    /// of any count.
+    pub fn perturb(&mut self, change: Perturbation) -> u32 {
+        let mut unplaced = 0;
         match change {
             Perturbation::AddObstacles { count, radius } => {
                 let mut rng = std::mem::replace(&mut self.perturb_rng, ChaCha8Rng::seed_from_u64(0));
-                for _ in 0..count {
+                for placed in 0..count {
                     if crate::layout::place_obstacle(self, &mut rng, radius).is_none() {
-                        tracing_free_warn("no free place for an obstacle");
+                        unplaced = count - placed;
+                        break;
                     }
                 }
                 self.perturb_rng = rng;
+                if unplaced > 0 {
+                    self.obstacles_unplaced += u64::from(unplaced);
+                    warn_unplaced(self.step, count, radius, unplaced);
+                }
             }
             Perturbation::SetIp(ip) => self.regime.ip = ip.clamp(0.0, 1.0),
             Perturbation::SetLateralTransfer(on) => self.regime.lateral_transfer = on,
@@ -543,6 +534,7 @@ impl World {
                 }
             }
         }
+        unplaced
     }
 
     /// Mark an agent dead: its body idles and whatever it carried is dropped where it
@@ -579,12 +571,16 @@ impl World {
     }
 }
 
-/// The world crate stays free of a logging dependency; perturbations that cannot be
-/// placed are rare and reported through stderr in debug builds only.
-fn tracing_free_warn(msg: &str) {
-    if cfg!(debug_assertions) {
-        eprintln!("geese-world: {msg}");
-    }
+/// Report obstacles a perturbation could not place, in every build: through `tracing`
+/// when the crate has it (the default `server` feature, which every binary of the
+/// workspace builds with), otherwise on stderr.
+fn warn_unplaced(step: u64, count: u32, radius: i32, unplaced: u32) {
+    #[cfg(feature = "server")]
+    tracing::warn!(step, count, radius, unplaced, "no free place for an obstacle: {unplaced} of {count} not placed");
+    #[cfg(not(feature = "server"))]
+    eprintln!(
+        "geese-world: step {step}: no free place for an obstacle of radius {radius}: {unplaced} of {count} not placed"
+    );
 }
 
 pub fn round2(v: f64) -> f64 {
@@ -753,6 +749,67 @@ mod tests {
         w.kill(0);
         let here = w.geometry().cell_of(Pos::new(-20, -20));
         assert!(w.objects_in(here).any(|o| o.id == food));
+    }
+
+    #[test]
+    fn unplaceable_obstacles_are_counted_and_the_work_is_bounded() {
+        // The 100 × 100 arena has 5 distances × 36 angles for obstacles: a count of
+        // u32::MAX used to retry 10,000 times per obstacle, for ever.
+        let mut w = world(Task::Foraging, 1);
+        let t = std::time::Instant::now();
+        let unplaced = w.perturb(Perturbation::AddObstacles { count: u32::MAX, radius: 10 });
+        let placed = w.objects().filter(|o| o.info.kind == ObjectKind::Obstacles).count() as u32;
+        assert!(placed > 0 && placed < 180, "{placed}");
+        assert_eq!(unplaced, u32::MAX - placed);
+        assert_eq!(w.obstacles_unplaced(), u64::from(unplaced));
+        assert!(t.elapsed() < std::time::Duration::from_secs(5), "{:?}", t.elapsed());
+        // Another change counts on; other perturbations place nothing.
+        assert_eq!(w.perturb(Perturbation::AddObstacles { count: 2, radius: 10 }), 2);
+        assert_eq!(w.obstacles_unplaced(), u64::from(unplaced) + 2);
+        assert_eq!(w.perturb(Perturbation::SetIp(0.5)), 0);
+        // A radius covering the hub's cell can never be placed, and costs no scan.
+        let mut w = world(Task::Foraging, 1);
+        assert_eq!(w.perturb(Perturbation::AddObstacles { count: 3, radius: 1_000 }), 3);
+        assert_eq!(w.perturb(Perturbation::AddObstacles { count: 1, radius: i32::MAX }), 1);
+        assert_eq!(w.obstacles_unplaced(), 4);
+        // Fine where there is room: nothing unplaced.
+        let mut w = world(Task::Foraging, 1);
+        assert_eq!(w.perturb(Perturbation::AddObstacles { count: 5, radius: 10 }), 0);
+        assert_eq!(w.obstacles_unplaced(), 0);
+    }
+
+    #[test]
+    fn obstacle_placement_matches_the_plain_rule() {
+        // The plain rule of REFERENCE §1.4 (draw until free, at most 10,000 draws):
+        // the bounded rule must place the same obstacles from the same stream.
+        fn plain(w: &mut World, rng: &mut ChaCha8Rng, radius: i32) -> Option<ObjectId> {
+            let half = w.geometry().half_w().min(w.geometry().half_h());
+            let steps = ((half - 25) + 4) / 5;
+            for _ in 0..10_000 {
+                let d = 25 + 5 * rng.random_range(0..steps);
+                let theta = std::f64::consts::TAU * rng.random_range(0..36u32) as f64 / 35.0;
+                let p = Pos::new((d as f64 * theta.cos()).trunc() as i32, (d as f64 * theta.sin()).trunc() as i32);
+                if !w.area_has_objects(p, radius) {
+                    return Some(w.add_object(ObjectKind::Obstacles, p, radius));
+                }
+            }
+            None
+        }
+        for (size, grid, radius) in [(100, 10, 10), (100, 2, 5), (200, 10, 25), (100, 10, 3)] {
+            let cfg = WorldConfig { width: size, height: size, grid, agents: 1, ..Default::default() };
+            let (mut a, mut b) = (World::new(cfg.clone(), 1).unwrap(), World::new(cfg, 1).unwrap());
+            let (mut ra, mut rb) = (ChaCha8Rng::seed_from_u64(9), ChaCha8Rng::seed_from_u64(9));
+            for _ in 0..40 {
+                let x = crate::layout::place_obstacle(&mut a, &mut ra, radius);
+                let y = plain(&mut b, &mut rb, radius);
+                assert_eq!(x, y, "{size}/{grid}/{radius}");
+                if x.is_none() {
+                    break;
+                }
+            }
+            let pos = |w: &World| w.objects().map(|o| o.info.pos).collect::<Vec<_>>();
+            assert_eq!(pos(&a), pos(&b));
+        }
     }
 
     #[test]
