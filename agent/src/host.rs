@@ -54,7 +54,7 @@ const KEEP_STEPS: u64 = 2;
 pub enum HostError {
     #[error("agents {range} outside the run's {agents} agents")]
     Range { range: AgentRange, agents: u32 },
-    #[error("learner configuration from the world: {0}")]
+    #[error("run information from the world: {0}")]
     Learner(String),
     #[error("grammar {name}: {reason}")]
     Grammar { name: String, reason: String },
@@ -197,6 +197,15 @@ impl Host {
     pub fn new(range: AgentRange, info: RunInfo, wide: bool) -> Result<Self, HostError> {
         if range.last >= info.spec.agents {
             return Err(HostError::Range { range, agents: info.spec.agents });
+        }
+        geese_proto::limits::check_unit("loss.percept", info.spec.loss.percept)
+            .map_err(|e| HostError::Learner(e.to_string()))?;
+        if info.cells.len() > info.spec.agents as usize {
+            return Err(HostError::Learner(format!(
+                "run info lists {} cells for {} agents",
+                info.cells.len(),
+                info.spec.agents
+            )));
         }
         let geom = info.geometry;
         let mut learners = Vec::new();

@@ -117,6 +117,9 @@ impl Server {
                 spec.agents, wcfg.agents
             )));
         }
+        for (field, p) in [("loss.intent", spec.loss.intent), ("loss.percept", spec.loss.percept)] {
+            geese_proto::limits::check_unit(field, p).map_err(|e| ServerError::Config(e.to_string()))?;
+        }
         let mut world = World::new(wcfg, spec.seed)?;
         world.set_regime(spec.regime);
         for (at, change) in &spec.perturbations {
@@ -204,7 +207,9 @@ impl Server {
     /// messages that a process leaving completes.
     pub fn on_presence(&mut self, alive: bool, key: &str) -> Released {
         match keys::parse(&self.run, key) {
-            Parsed::AgentsPresence { agents } | Parsed::CellsPresence { agents } if agents.last as usize >= self.n => {
+            p @ (Parsed::AgentsPresence { agents } | Parsed::CellsPresence { agents })
+                if !p.within(self.spec.agents) =>
+            {
                 // A range beyond the run: never iterated, never counted as present.
                 tracing::debug!("presence token {key}: agents {agents} outside the run's {} agents; ignored", self.n);
                 self.count_rejected();
@@ -252,7 +257,17 @@ impl Server {
                 self.stop = true;
                 self.stop_requested = true;
             }
-            Ok(Control::Schedule { at_step, change }) => self.scheduled.push((at_step, change)),
+            Ok(c @ Control::Schedule { .. }) => match c.validate(&self.world.geometry()) {
+                Ok(()) => {
+                    if let Control::Schedule { at_step, change } = c {
+                        self.scheduled.push((at_step, change));
+                    }
+                }
+                Err(e) => {
+                    tracing::warn!("control command rejected: {e}");
+                    self.count_rejected();
+                }
+            },
             Ok(Control::Start) => {}
             Err(e) => {
                 // One line per message at debug; the step's report counts them and
@@ -340,16 +355,18 @@ impl Server {
                     if pending > 0 && now < deadline {
                         return Next::Wait(deadline);
                     }
-                    // At the deadline: a hit, whether intents are missing or the wake-up
-                    // that should have come with the last one never did.
-                    self.counters.deadline_hits += 1;
-                    self.counters.intents_late = pending as u32;
-                    tracing::warn!(
-                        "step {}: the intent deadline ({} ms) passed with {pending} intents missing",
-                        self.world.step(),
-                        self.spec.deadlines.intent_ms
-                    );
-                    self.hub.trace_incomplete();
+                    if now >= deadline {
+                        // At the deadline: a hit, whether intents are missing or the
+                        // wake-up that should have come with the last one never did.
+                        self.counters.deadline_hits += 1;
+                        self.counters.intents_late = pending as u32;
+                        tracing::warn!(
+                            "step {}: the intent deadline ({} ms) passed with {pending} intents missing",
+                            self.world.step(),
+                            self.spec.deadlines.intent_ms
+                        );
+                        self.hub.trace_incomplete();
+                    }
                     self.counters.wait_us =
                         now.saturating_duration_since(started).as_micros().min(u32::MAX as u128) as u32;
                     return match self.finish_step() {
@@ -758,6 +775,29 @@ mod tests {
             }
             other => panic!("expected the end, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn out_of_range_control_commands_are_rejected_counted_and_never_applied() {
+        let t0 = Instant::now();
+        let mut s = Server::new(spec(2, 3), t0).unwrap();
+        let a = range(0, 2);
+        join(&mut s, a, true);
+        published(&s.next(t0));
+        use geese_proto::Perturbation::*;
+        for change in
+            [AddObstacles { count: u32::MAX, radius: 10 }, SetIp(f64::NAN), SetGeneLoss(2.0), KillFraction(-0.5)]
+        {
+            s.on_control(&encode(&Control::Schedule { at_step: 1, change }).unwrap());
+        }
+        s.on_control(&encode(&Control::Schedule { at_step: u64::MAX, change: SetIp(0.5) }).unwrap());
+        answer(&mut s, a, 1);
+        assert_eq!(report(s.next(t0)).net.hostile, 5);
+        published(&s.next(t0));
+        assert_eq!(s.world().regime(), geese_proto::Regime::default(), "nothing applied");
+        // The stop that follows is still obeyed.
+        s.on_control(&encode(&Control::Stop).unwrap());
+        assert!(matches!(s.next(t0), Next::Finished { outcome: Ok(false), .. }));
     }
 
     #[test]

@@ -571,16 +571,9 @@ impl World {
     }
 }
 
-/// Report obstacles a perturbation could not place, in every build: through `tracing`
-/// when the crate has it (the default `server` feature, which every binary of the
-/// workspace builds with), otherwise on stderr.
+/// Report obstacles a perturbation could not place, in every build.
 fn warn_unplaced(step: u64, count: u32, radius: i32, unplaced: u32) {
-    #[cfg(feature = "server")]
     tracing::warn!(step, count, radius, unplaced, "no free place for an obstacle: {unplaced} of {count} not placed");
-    #[cfg(not(feature = "server"))]
-    eprintln!(
-        "geese-world: step {step}: no free place for an obstacle of radius {radius}: {unplaced} of {count} not placed"
-    );
 }
 
 pub fn round2(v: f64) -> f64 {
