@@ -1,5 +1,6 @@
 //! Throughput benchmark of the simulation core: learning agent-steps per second on one
-//! thread. A benchmark prints figures; it is not a test and asserts nothing.
+//! thread; and (`geese bench --micro`) micro-benchmarks of one genetic step and one
+//! mapping. A benchmark prints figures; it is not a test and asserts nothing.
 use crate::config::RunConfig;
 use crate::trial::Trial;
 use std::time::Instant;
@@ -34,4 +35,24 @@ pub fn bench_core(cfg: RunConfig) -> anyhow::Result<BenchResult> {
         genetic_steps: t.summary().genetic_steps + t.summary().stagnation_steps,
         final_task_pct: t.summary().final_task_pct,
     })
+}
+
+/// Batches of the genetic-step micro-benchmark (the best one is reported).
+pub const MICRO_BATCHES: usize = 30;
+/// Genetic steps per batch of the micro-benchmark.
+pub const MICRO_BATCH: usize = 2000;
+/// Calls of each mapper entry point per golden genome.
+pub const MICRO_MAPPINGS: usize = 200_000;
+
+/// Figures of `geese bench --micro`.
+#[derive(Debug, Clone)]
+pub struct MicroResult {
+    pub step: geese_agent::ge::micro::StepTiming,
+    pub mapping: Vec<geese_agent::ge::micro::MappingTiming>,
+}
+
+/// Run the micro-benchmarks of [`geese_agent::ge::micro`] with the batch sizes above.
+pub fn bench_micro() -> MicroResult {
+    use geese_agent::ge::micro;
+    MicroResult { step: micro::genetic_step_us(MICRO_BATCHES, MICRO_BATCH), mapping: micro::mapping_ns(MICRO_MAPPINGS) }
 }

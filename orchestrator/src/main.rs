@@ -204,6 +204,9 @@ struct BenchArgs {
     /// Repetitions (different seeds from --seed on).
     #[arg(long, default_value_t = 1)]
     repeat: u32,
+    /// Instead of the trial, time one genetic step and one mapping (forge.bnf).
+    #[arg(long)]
+    micro: bool,
 }
 
 fn parse_genome(s: &str) -> Result<Vec<u32>> {
@@ -354,6 +357,32 @@ fn net_run_cmd(
 }
 
 fn bench_cmd(a: BenchArgs) -> Result<()> {
+    if a.micro {
+        use geese_agent::ge::micro;
+        println!(
+            "geese bench --micro: forge.bnf, ChaCha8 seed {}, best of {} batches of {} genetic steps",
+            micro::SEED,
+            bench::MICRO_BATCHES,
+            bench::MICRO_BATCH
+        );
+        let r = bench::bench_micro();
+        println!(
+            "genetic_step (pool of {}, default parameters): {:.2} µs per step (pool clone {:.2} µs excluded)",
+            micro::POOL_SIZE,
+            r.step.step_us,
+            r.step.clone_us
+        );
+        for t in &r.mapping {
+            println!(
+                "golden genome using {} codons, padded to {}: map_stats {:.0} ns, map_scored {:.0} ns",
+                t.used_codons,
+                micro::PADDED_LENGTH,
+                t.map_stats_ns,
+                t.map_scored_ns
+            );
+        }
+        return Ok(());
+    }
     println!("geese bench: {} learning agents, {} steps, one thread", a.agents, a.steps);
     let mut rates = Vec::new();
     let (mut seconds, mut genetic) = (0.0, 0u64);

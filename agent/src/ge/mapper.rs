@@ -671,36 +671,3 @@ pub(crate) mod tests {
         }
     }
 }
-
-#[cfg(test)]
-mod timing {
-    use super::tests::{forge_golden, grammar};
-    use super::*;
-    use crate::ge::testdata::FORGE;
-
-    /// `cargo test --release -p geese-agent mapper_timing -- --ignored --nocapture`
-    #[test]
-    #[ignore]
-    fn mapper_timing() {
-        let g = grammar(FORGE);
-        let mut m = Mapper::new();
-        let limits = MapLimits::default();
-        for (genome, used, _, _) in forge_golden() {
-            let mut genome = genome.clone();
-            genome.resize(100, 7);
-            let n = 200_000;
-            let t = std::time::Instant::now();
-            let mut sink = 0usize;
-            for _ in 0..n {
-                sink += m.map_stats(&g, std::hint::black_box(&genome), limits).used_codons;
-            }
-            let stats = t.elapsed().as_secs_f64() / n as f64 * 1e9;
-            let t = std::time::Instant::now();
-            for _ in 0..n {
-                sink += m.map_scored(&g, std::hint::black_box(&genome), limits).0.used_codons;
-            }
-            let scored = t.elapsed().as_secs_f64() / n as f64 * 1e9;
-            println!("used {used}: map_stats {stats:.0} ns, map_scored {scored:.0} ns (sink {sink})");
-        }
-    }
-}

@@ -11,6 +11,7 @@
 //! - [`phenotype`]: bracket phenotype string → composite tree with the §4.3 quirk.
 //! - [`mod@diversity`]: the `bt_diversity` fitness D of §5.5.
 //! - [`operators`]: parameters, individuals and one genetic step (§5.1, §5.6).
+//! - [`micro`]: micro-benchmarks of one genetic step and one mapping (`geese bench --micro`).
 //! - `ceiling`: the highest D a grammar's valid individuals can score.
 //! - `crossover`: the genetic step's crossover pairs, drawn from the accepted ones.
 //! - `tape`: mappings that keep the state at a child's first mutated codon, to resume from.
@@ -22,6 +23,7 @@ pub mod diversity;
 pub mod grammar;
 pub mod init;
 pub mod mapper;
+pub mod micro;
 pub mod operators;
 pub mod phenotype;
 mod tape;

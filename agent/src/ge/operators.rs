@@ -1221,47 +1221,4 @@ mod tests {
         let m = map_genome(&g, &w.genome, p.map_limits());
         assert_eq!(m.phenotype.as_deref(), w.phenotype.as_deref());
     }
-
-    /// Timing of one genetic step (pool of 7 forge individuals, default parameters).
-    /// Reports the best of 30 batches so that other load on the machine does not
-    /// inflate it. Run with
-    /// `cargo test --release -p geese-agent genetic_step_timing -- --ignored --nocapture`.
-    #[test]
-    #[ignore]
-    fn genetic_step_timing() {
-        let g = grammar(FORGE);
-        let p = GeParams::default();
-        let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let pools: Vec<Vec<Individual>> = (0..64)
-            .map(|_| {
-                let mut pool = pool_of(&g, &p, &mut rng, 7);
-                pool.iter_mut().enumerate().for_each(|(k, i)| i.fitness = k as f64 * 0.5);
-                pool
-            })
-            .collect();
-        let batch = 2000;
-        let mut sink = 0usize;
-        let mut best_step = f64::MAX;
-        let mut best_clone = f64::MAX;
-        for _ in 0..30 {
-            let t = std::time::Instant::now();
-            for k in 0..batch {
-                let pool = pools[k % pools.len()].clone();
-                sink += pool.len();
-            }
-            best_clone = best_clone.min(t.elapsed().as_secs_f64() / batch as f64);
-            let t = std::time::Instant::now();
-            for k in 0..batch {
-                let mut pool = pools[k % pools.len()].clone();
-                sink += genetic_step(&g, &mut pool, &p, &mut rng).map(|w| w.genome.len()).unwrap_or(0);
-            }
-            best_step = best_step.min(t.elapsed().as_secs_f64() / batch as f64);
-        }
-        let per = (best_step - best_clone) * 1e6;
-        println!(
-            "genetic_step (pool of 7, forge.bnf): {per:.2} µs per step (pool clone {:.2} µs excluded; sink {sink})",
-            best_clone * 1e6
-        );
-        assert!(per < 500.0, "genetic step far too slow: {per} µs");
-    }
 }
