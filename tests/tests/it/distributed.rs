@@ -34,14 +34,14 @@ fn bin_dir() -> PathBuf {
     .clone()
 }
 
-fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunConfig {
+pub(crate) fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunConfig {
     let mut c = RunConfig { steps, seed, ..Default::default() };
     c.world.agents = agents;
     c.world.layout = layout;
     c
 }
 
-fn in_process(cfg: &RunConfig) -> Vec<StepReport> {
+pub(crate) fn in_process(cfg: &RunConfig) -> Vec<StepReport> {
     let spec = cfg.clone().validate().expect("valid config");
     let mut t = Trial::new(&spec).expect("world builds");
     (0..cfg.steps).map(|_| t.step()).collect()

@@ -5,10 +5,10 @@
 //!
 //! Time is a value here: a stall shows as a wait that nothing ends, and the router
 //! fails the test rather than sleeping.
+use super::distributed::{config, in_process};
 use geese_agent::host::{Host, Input, Next as HostNext, Out};
 use geese_orchestrator::config::{RunConfig, Scheduled};
 use geese_orchestrator::launch::{net_spec, NetOptions};
-use geese_orchestrator::Trial;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{Deadlines, IntentBatch, LossRates, NetReport, ReportMsg};
 use geese_proto::{decode, encode, Perturbation, StepReport};
@@ -19,19 +19,6 @@ use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 const RUN: &str = "mem";
-
-fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunConfig {
-    let mut c = RunConfig { steps, seed, ..Default::default() };
-    c.world.agents = agents;
-    c.world.layout = layout;
-    c
-}
-
-fn in_process(cfg: &RunConfig) -> Vec<StepReport> {
-    let spec = cfg.clone().validate().expect("valid config");
-    let mut t = Trial::new(&spec).expect("world builds");
-    (0..cfg.steps).map(|_| t.step()).collect()
-}
 
 fn server(cfg: &RunConfig, loss: LossRates, now: Instant) -> Server {
     let spec = cfg.clone().validate().expect("valid config");
