@@ -22,11 +22,32 @@ pub type CellIdx = u32;
 
 /// Arena width/height and grid size. Validated on construction: (W/2) and (H/2) must be
 /// multiples of the grid size, as the reference requires.
+///
+/// Decoding validates too (through [`Geometry::new`]): an agent process takes its
+/// geometry from the world's `RunInfo`, and a grid of 0 there made its first cell
+/// look-up divide by zero (found by `geese-fuzz`, target `run_info`). The wire format
+/// is unchanged.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "GeometryParts")]
 pub struct Geometry {
     pub width: i32,
     pub height: i32,
     pub grid: i32,
+}
+
+/// A [`Geometry`] as decoded, before it is checked.
+#[derive(Deserialize)]
+struct GeometryParts {
+    width: i32,
+    height: i32,
+    grid: i32,
+}
+
+impl TryFrom<GeometryParts> for Geometry {
+    type Error = GeometryError;
+    fn try_from(p: GeometryParts) -> Result<Self, GeometryError> {
+        Geometry::new(p.width, p.height, p.grid)
+    }
 }
 
 /// Why a geometry is not usable.
@@ -266,5 +287,17 @@ mod tests {
     fn bad_geometry_is_an_error() {
         assert!(Geometry::new(100, 100, 7).is_err());
         assert!(Geometry::new(0, 100, 10).is_err());
+    }
+
+    #[test]
+    fn decoding_checks_the_geometry_and_keeps_the_wire_format() {
+        let g = Geometry::new(100, 60, 10).unwrap();
+        let bytes = crate::encode(&g).unwrap();
+        assert_eq!(crate::decode::<Geometry>(&bytes).unwrap(), g);
+        assert_eq!(crate::encode(&(100i32, 60i32, 10i32)).unwrap(), bytes);
+        for (w, h, gs) in [(100, 60, 0), (100, 60, 7), (0, 60, 10), (-100, 60, 10)] {
+            let bad = crate::encode(&(w, h, gs)).unwrap();
+            assert!(crate::decode::<Geometry>(&bad).is_err(), "{w}x{h}, grid {gs}");
+        }
     }
 }
