@@ -2,3 +2,4 @@
 mod campaign;
 mod core;
 mod distributed;
+mod fuzz;
