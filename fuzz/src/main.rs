@@ -126,13 +126,15 @@ fn main() -> Result<()> {
     );
     println!("{}", Report::header());
     let reports = run_all(&targets, &opts, args.jobs.max(1));
-    let (mut inputs, mut panics, mut hangs) = (0, 0, 0);
+    let (mut inputs, mut panics, mut hangs, mut stalls) = (0, 0, 0, 0);
     for r in &reports {
         inputs += r.inputs;
         panics += r.panics;
         hangs += r.hangs;
+        stalls += r.stalls;
     }
-    println!("total: {} targets, {inputs} inputs, {panics} panics, {hangs} hangs", reports.len());
+    let n = reports.len();
+    println!("total: {n} targets, {inputs} inputs, {panics} panics, {hangs} hangs ({stalls} stalls of the machine)");
     let failing: Vec<&Report> = reports.iter().filter(|r| !r.ok()).collect();
     for r in &failing {
         for f in &r.failures {
