@@ -166,7 +166,7 @@ fn intents() -> Vec<IntentBatch> {
             step: 1,
             intents: vec![],
             idle: vec![],
-            counters: HostCounters { percepts_lost: 1, percepts_missing: 2, genes_late: 3, hostile: 4 },
+            counters: HostCounters { percepts_lost: 1, genes_late: 3, hostile: 4, ..HostCounters::default() },
         },
     ]
 }
