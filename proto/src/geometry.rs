@@ -25,7 +25,9 @@ pub type CellIdx = u32;
 /// geometry also arrives over the network, in the world's run information): (W/2) and
 /// (H/2) must be multiples of the grid size, as the reference requires; W and H at most
 /// [`MAX_ARENA_SIDE`], at most [`MAX_CELLS`] cells. Within these limits every cell index
-/// and coordinate product below fits in `i32`.
+/// and coordinate product below fits in `i32`. (Before decoding checked, a grid of 0 in
+/// the run information made a joining agent process divide by zero at its first cell
+/// look-up: found by `geese-fuzz`, target `run_info`.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(try_from = "GeometryFields")]
 pub struct Geometry {
@@ -409,6 +411,18 @@ mod tests {
         for bad in [(100i32, 60i32, 7i32), (i32::MAX - 1, 2, 1), (0, 0, 0)] {
             let bytes = postcard::to_stdvec(&bad).unwrap();
             assert!(postcard::from_bytes::<Geometry>(&bytes).is_err(), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn decoding_checks_the_geometry_and_keeps_the_wire_format() {
+        let g = Geometry::new(100, 60, 10).unwrap();
+        let bytes = crate::encode(&g).unwrap();
+        assert_eq!(crate::decode::<Geometry>(&bytes).unwrap(), g);
+        assert_eq!(crate::encode(&(100i32, 60i32, 10i32)).unwrap(), bytes);
+        for (w, h, gs) in [(100, 60, 0), (100, 60, 7), (0, 60, 10), (-100, 60, 10)] {
+            let bad = crate::encode(&(w, h, gs)).unwrap();
+            assert!(crate::decode::<Geometry>(&bad).is_err(), "{w}x{h}, grid {gs}");
         }
     }
 }

@@ -2,4 +2,5 @@
 mod campaign;
 mod core;
 mod distributed;
+mod fuzz;
 mod protocol;

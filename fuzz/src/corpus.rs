@@ -1,0 +1,442 @@
+//! Seed inputs: valid encodings of real values, the shipped grammars, the campaign
+//! files and run configurations.
+//!
+//! Why valid seeds: mutations of a valid message reach the fields deep inside it (a
+//! genome's width byte inside a gene inside a batch inside an LZ4 pack inside a
+//! bundle); random bytes stop at the version byte. The messages are built with the
+//! crate's own encoders ([`encode`], [`nest`], [`pack`]), so the seeds follow the wire
+//! format as it is, not as a copy of it here says.
+use geese_agent::ge::{random_individual, GeParams, Grammar};
+use geese_agent::{grammars, LearnerConfig};
+use geese_orchestrator::RunConfig;
+use geese_proto::net::{
+    nest, pack, Deadlines, GeneBatch, GeneBatchRef, GeneBundle, HostCounters, HostGenes, HostPercepts, IntentBatch,
+    LossRates, NetCounters, NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, AHEAD_CELL, NO_CELL,
+};
+use geese_proto::{
+    encode, AgentPublic, AgentStats, Control, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo,
+    ObjectKind, Op, Percept, Perturbation, Pos, Regime, StepReport,
+};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::path::{Path, PathBuf};
+
+/// The geometry of the default run (100 × 100, grid 10).
+pub fn geometry() -> Geometry {
+    Geometry::new(100, 100, 10).expect("the default geometry is valid")
+}
+
+fn enveloped<T: serde::Serialize>(msgs: impl IntoIterator<Item = T>) -> Vec<Vec<u8>> {
+    msgs.into_iter().map(|m| encode(&m).expect("a real message encodes")).collect()
+}
+
+fn object(id: u32, kind: ObjectKind, x: i32, y: i32) -> ObjectInfo {
+    ObjectInfo { id, kind, pos: Pos::new(x, y), radius: 3 + (id % 5) as i32, weight: (id % 3) as i32, capacity: 1 }
+}
+
+/// Percepts of a few cells: empty, crowded, with carried objects and obstacles nearby.
+pub fn percepts() -> Vec<Percept> {
+    let regime = Regime::default();
+    let kinds = ObjectKind::ALL;
+    (0..6u32)
+        .map(|k| {
+            let objects = (0..k * 2).map(|i| object(100 + i, kinds[(i as usize) % 7], i as i32 - 5, 7)).collect();
+            let nearby_impassable = (0..k).map(|i| object(200 + i, ObjectKind::Obstacles, -40, i as i32)).collect();
+            let agents = (0..k)
+                .map(|i| AgentPublic {
+                    id: i * 3,
+                    pos: Pos::new(i as i32 * 2 - 45, -45),
+                    heading: 0.25 * i as f64 - 1.0,
+                    carrying: (0..i % 3).map(|j| object(300 + j, ObjectKind::Food, 0, 0)).collect(),
+                    live: i % 4 != 3,
+                    learning: i % 5 != 4,
+                })
+                .collect();
+            Percept {
+                step: [1, 2, 500, 12_000, u32::MAX as u64 + 7, 3][k as usize],
+                cell: k * 17 % 100,
+                regime: Regime {
+                    ip: 0.1 * k as f64,
+                    lateral_transfer: k.is_multiple_of(2),
+                    gene_loss: 0.05 * k as f64,
+                },
+                objects,
+                nearby_impassable,
+                agents,
+            }
+        })
+        .chain(std::iter::once(Percept {
+            step: 9,
+            cell: 0,
+            regime,
+            objects: vec![],
+            nearby_impassable: vec![],
+            agents: vec![],
+        }))
+        .collect()
+}
+
+/// Genomes of real individuals of the default grammar, some with codons above 65,535
+/// (so that both wire widths occur).
+pub fn genomes() -> Vec<Vec<u32>> {
+    let g = Grammar::parse(grammars::builtin("betr-foraging-avoid").expect("shipped")).expect("parses");
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let mut out: Vec<Vec<u32>> =
+        (0..6).map(|_| random_individual(&g, &GeParams::default(), &mut rng).genome.to_vec()).collect();
+    let mut wide = out[0].clone();
+    wide[1] = 70_000;
+    out.push(wide);
+    out.push(vec![]);
+    out.push(vec![0, 65_535, 65_536, u32::MAX]);
+    out
+}
+
+fn gene(step: u64, from: u32, genome: &[u32]) -> GeneMsg {
+    let mapping = GeneMapping { valid: !from.is_multiple_of(3), used_codons: genome.len() as u32 / 2, depth: 5 };
+    GeneMsg { step, from, genome: genome.into(), fitness: 1.5 * from as f64, mapping }
+}
+
+/// Gene batches of a few cells and one sent ahead.
+pub fn gene_batches() -> Vec<GeneBatch> {
+    let gs = genomes();
+    let mut out: Vec<GeneBatch> = (0..4u32)
+        .map(|c| GeneBatch {
+            step: 3,
+            cell: c * 11,
+            genes: (0..c).map(|i| gene(3, 10 + i, &gs[(c + i) as usize % gs.len()])).collect(),
+            absent: (0..c % 3).map(|i| 20 + i).collect(),
+        })
+        .collect();
+    out.push(GeneBatch {
+        step: 4,
+        cell: AHEAD_CELL,
+        genes: (0..3).map(|i| gene(4, 10 + i, &gs[i as usize])).collect(),
+        absent: vec![],
+    });
+    out
+}
+
+/// Packs of nested batches, as an agent process sends them: one of several cells, one
+/// sent ahead, an empty one.
+pub fn packs() -> Vec<Vec<u8>> {
+    let batches = gene_batches();
+    let nested: Vec<Vec<u8>> = batches.iter().map(|b| nest(b).expect("encodes")).collect();
+    let raws = |r: std::ops::Range<usize>| nested[r].iter().map(|b| Raw(b)).collect::<Vec<_>>();
+    // The ahead batch encoded from parts, as the agent does.
+    let ahead = &batches[4];
+    let by_parts =
+        nest(&GeneBatchRef { step: ahead.step, cell: ahead.cell, genes: &ahead.genes, absent: &ahead.absent })
+            .expect("encodes");
+    vec![
+        pack(&raws(0..4)).expect("packs"),
+        pack(&raws(1..2)).expect("packs"),
+        pack(&[Raw(&by_parts)]).expect("packs"),
+        pack(&[]).expect("packs"),
+    ]
+}
+
+fn intents() -> Vec<IntentBatch> {
+    let stats = |k: u32| AgentStats {
+        lt_rate: k,
+        genetic: [GeneticTrigger::None, GeneticTrigger::Storage, GeneticTrigger::Stagnation][k as usize % 3],
+        fitness: k as f64 * 0.5,
+        gene_digest: 0x1234_5678_9abc_def0 ^ k as u64,
+        genes_lost: k % 2,
+    };
+    let intent = |k: u32| Intent {
+        step: 7,
+        agent: k,
+        heading: -3.0 + k as f64,
+        ops: match k % 4 {
+            0 => vec![],
+            1 => vec![Op::Move { to: Pos::new(k as i32, -(k as i32)), heading: 1.25 }],
+            2 => vec![Op::Pick { object: 5 }, Op::Move { to: Pos::new(3, 4), heading: 0.0 }],
+            _ => vec![Op::Drop { object: 9 }, Op::Pick { object: 1 }, Op::Drop { object: 1 }],
+        },
+        stats: stats(k),
+    };
+    vec![
+        IntentBatch {
+            step: 7,
+            intents: (0..6).map(intent).collect(),
+            idle: vec![40, 41],
+            counters: HostCounters::default(),
+        },
+        IntentBatch {
+            step: 1,
+            intents: vec![],
+            idle: vec![],
+            counters: HostCounters { percepts_lost: 1, genes_late: 3, hostile: 4, ..HostCounters::default() },
+        },
+    ]
+}
+
+fn controls() -> Vec<Control> {
+    let changes = [
+        Perturbation::AddObstacles { count: 3, radius: 10 },
+        Perturbation::SetIp(0.5),
+        Perturbation::SetLateralTransfer(false),
+        Perturbation::SetGeneLoss(0.25),
+        Perturbation::KillFraction(0.3),
+    ];
+    let mut out = vec![Control::Start, Control::Stop];
+    out.extend(
+        changes.into_iter().enumerate().map(|(i, change)| Control::Schedule { at_step: 100 * i as u64, change }),
+    );
+    out
+}
+
+fn reports() -> Vec<ReportMsg> {
+    let report = StepReport {
+        step: 12,
+        task_pct: 42.5,
+        lt_mean: 1.5,
+        lt_std: 0.5,
+        genetic_steps: 3,
+        stagnation_steps: 1,
+        live_agents: 100,
+        missing_intents: 2,
+        rejected: 1,
+        genes_lost: 4,
+        digest: 0xdead_beef,
+    };
+    let net =
+        NetCounters { intents_lost: 1, hostile: 2, processes: 10, wait_us: 1234, genes_ahead: 9, ..Default::default() };
+    vec![
+        ReportMsg::Step(NetReport { report, net }),
+        ReportMsg::Done { steps: 12_000, completed: true, requested: false },
+        ReportMsg::Done { steps: 5, completed: false, requested: true },
+    ]
+}
+
+/// The run information a world sends a joining agent process: a learning run with the
+/// default grammar and a bare benchmark.
+pub fn run_infos() -> Vec<RunInfo> {
+    let cfg = RunConfig::default();
+    let grammar_name = cfg.grammar_name();
+    let spec = NetRunSpec {
+        run: "fuzz".into(),
+        seed: 5,
+        steps: 100,
+        agents: 4,
+        world_json: serde_json::to_string(&cfg.world).expect("encodes"),
+        learner_json: serde_json::to_string(&LearnerConfig::default()).expect("encodes"),
+        grammar_text: grammars::builtin(&grammar_name).expect("shipped").to_string(),
+        grammar_name,
+        regime: Regime::default(),
+        perturbations: vec![(10, Perturbation::SetIp(0.2)), (20, Perturbation::AddObstacles { count: 1, radius: 5 })],
+        loss: LossRates { intent: 0.1, percept: 0.0 },
+        deadlines: Deadlines::default(),
+        bare: false,
+        expect_orchestrator: true,
+    };
+    let hub = object(1, ObjectKind::Hub, 0, 0);
+    let learning =
+        RunInfo { spec: spec.clone(), geometry: geometry(), hub, next_step: 1, cells: vec![0, 5, NO_CELL, 99] };
+    let mut bare = learning.clone();
+    bare.spec.bare = true;
+    bare.spec.grammar_text = String::new();
+    bare.next_step = 77;
+    vec![learning, bare]
+}
+
+/// Seeds per wire target.
+pub mod wire {
+    use super::*;
+
+    pub fn percept() -> Vec<Vec<u8>> {
+        enveloped(percepts())
+    }
+
+    fn raws(n: &[Vec<u8>]) -> Vec<Raw<'_>> {
+        n.iter().map(|b| Raw(b)).collect()
+    }
+
+    pub fn host_percepts() -> Vec<Vec<u8>> {
+        let nested: Vec<Vec<u8>> = percepts().iter().map(|p| nest(p).expect("encodes")).collect();
+        let packs = packs();
+        let msgs = [
+            HostPercepts { step: 1, percepts: raws(&nested), genes: None },
+            HostPercepts { step: 4, percepts: raws(&nested[..2]), genes: Some(raws(&packs[2..])) },
+            HostPercepts { step: 4, percepts: vec![], genes: Some(vec![]) },
+        ];
+        msgs.iter().map(|m| encode(m).expect("encodes")).collect()
+    }
+
+    pub fn intents() -> Vec<Vec<u8>> {
+        enveloped(super::intents())
+    }
+
+    pub fn gene_batch() -> Vec<Vec<u8>> {
+        enveloped(gene_batches())
+    }
+
+    pub fn gene_bundle() -> Vec<Vec<u8>> {
+        packs()
+            .iter()
+            .enumerate()
+            .map(|(i, p)| encode(&GeneBundle { step: 3 + i as u64 / 2, packed: Raw(p) }).expect("encodes"))
+            .collect()
+    }
+
+    pub fn gene_pack() -> Vec<Vec<u8>> {
+        packs()
+    }
+
+    pub fn host_genes() -> Vec<Vec<u8>> {
+        let packs = packs();
+        let msgs = [
+            HostGenes { step: 3, cells: vec![0, 11, 22], packs: packs.iter().map(|p| Raw(p)).collect() },
+            HostGenes { step: 3, cells: vec![33], packs: vec![] },
+        ];
+        msgs.iter().map(|m| encode(m).expect("encodes")).collect()
+    }
+
+    pub fn tick() -> Vec<Vec<u8>> {
+        enveloped([Tick { step: 1, cells: vec![0, 1, 2, 3] }, Tick { step: 99, cells: vec![NO_CELL, 55, NO_CELL, 4] }])
+    }
+
+    pub fn run_info() -> Vec<Vec<u8>> {
+        enveloped(run_infos())
+    }
+
+    pub fn report() -> Vec<Vec<u8>> {
+        enveloped(reports())
+    }
+
+    pub fn control() -> Vec<Vec<u8>> {
+        enveloped(controls())
+    }
+
+    pub fn gene_msg() -> Vec<Vec<u8>> {
+        enveloped(genomes().iter().enumerate().map(|(i, g)| gene(2, i as u32, g)))
+    }
+
+    /// Every enveloped message of every type: the envelope target reads each as each.
+    pub fn envelope() -> Vec<Vec<u8>> {
+        [
+            percept(),
+            host_percepts(),
+            intents(),
+            gene_batch(),
+            gene_bundle(),
+            host_genes(),
+            tick(),
+            run_info(),
+            report(),
+            control(),
+            gene_msg(),
+        ]
+        .concat()
+    }
+}
+
+/// The shipped grammar texts.
+pub fn grammar_texts() -> Vec<Vec<u8>> {
+    grammars::names().filter_map(grammars::builtin).map(|t| t.as_bytes().to_vec()).collect()
+}
+
+/// Phenotypes of random individuals of every shipped grammar (what the mapper makes and
+/// a learner builds its tree from), a few of each.
+pub fn phenotypes() -> Vec<Vec<u8>> {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut out = Vec::new();
+    for text in grammars::names().filter_map(grammars::builtin) {
+        let g = Grammar::parse(text).expect("shipped grammars parse");
+        for _ in 0..3 {
+            if let Some(p) = random_individual(&g, &GeParams::default(), &mut rng).phenotype {
+                out.push(p.as_bytes().to_vec());
+            }
+        }
+    }
+    out
+}
+
+/// Genomes as they travel (a width byte, then the codons).
+pub fn genome_bytes() -> Vec<Vec<u8>> {
+    let mut out = Vec::new();
+    for g in genomes() {
+        // Encoded by the real codec, and taken out of the gene as a receiver sees it.
+        let nested = nest(&gene(1, 1, &g)).expect("encodes");
+        let head: geese_proto::net::GeneHead = Raw(&nested).open().expect("opens");
+        out.push(head.genome.0.to_vec());
+    }
+    out
+}
+
+/// The workspace's `campaigns/` directory, read when the fuzzer starts (not embedded:
+/// campaign files come and go, and a new one is a new seed without a rebuild).
+pub fn campaigns_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("campaigns")
+}
+
+fn toml_files(dir: &Path, out: &mut Vec<Vec<u8>>) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    let mut paths: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
+    paths.sort();
+    for p in paths {
+        if p.is_dir() {
+            toml_files(&p, out);
+        } else if p.extension().is_some_and(|e| e == "toml") {
+            if let Ok(b) = std::fs::read(&p) {
+                out.push(b);
+            }
+        }
+    }
+}
+
+/// A campaign used when the campaign files cannot be found.
+const FALLBACK_CAMPAIGN: &str = r#"name = "fallback"
+tasks = ["foraging", "nest"]
+seeds = 2
+x = "ip"
+[base]
+steps = 100
+[base.world]
+agents = 10
+[[grid]]
+ip = [0.5, 0.85]
+"#;
+
+/// The campaign files of the workspace (`campaigns/`, recursively).
+pub fn campaign_texts() -> Vec<Vec<u8>> {
+    let mut out = Vec::new();
+    toml_files(&campaigns_dir(), &mut out);
+    if out.is_empty() {
+        out.push(FALLBACK_CAMPAIGN.as_bytes().to_vec());
+    }
+    out
+}
+
+/// Run configurations: the defaults written out in full, some with perturbations and
+/// other grammars, and the `[base]` table of every campaign file.
+pub fn run_config_texts() -> Vec<Vec<u8>> {
+    let mut configs = vec![RunConfig::default()];
+    let mut c = RunConfig { steps: 50, seed: 9, grammar: Some("geese-bt-nest".into()), ..RunConfig::default() };
+    c.world.task = geese_world::Task::Nest;
+    c.perturbations = controls()
+        .into_iter()
+        .filter_map(|c| match c {
+            Control::Schedule { at_step, change } => {
+                Some(geese_orchestrator::config::Scheduled { at: at_step + 1, change })
+            }
+            _ => None,
+        })
+        .collect();
+    configs.push(c);
+    let mut out: Vec<Vec<u8>> =
+        configs.iter().filter_map(|c| toml::to_string(c).ok()).map(String::into_bytes).collect();
+    out.push(b"steps = 10\n".to_vec());
+    for text in campaign_texts() {
+        let base = std::str::from_utf8(&text)
+            .ok()
+            .and_then(|t| t.parse::<toml::Table>().ok())
+            .and_then(|mut t| t.remove("base"));
+        if let Some(toml::Value::Table(base)) = base {
+            if let Ok(s) = toml::to_string(&base) {
+                out.push(s.into_bytes());
+            }
+        }
+    }
+    out
+}
