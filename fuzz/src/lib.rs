@@ -18,6 +18,8 @@
 //!   exactly as the world, agent and orchestrator binaries do.
 //! - [`corpus`]: the seed inputs of each target: real values encoded, the shipped
 //!   grammars, the campaign files, run configurations.
+//! - [`protocol`]: targets that drive the protocol modules themselves (the world's
+//!   `Server`, an agent process's `Host`) with a hostile message in the middle of a step.
 //! - [`mutate`]: the input generator (random bytes; bit flips, byte inserts and deletes,
 //!   splices, interesting integers, dictionary tokens and truncation of seed inputs).
 //! - [`driver`]: runs a target for N inputs with panics caught and a hang watchdog,
@@ -25,6 +27,7 @@
 pub mod corpus;
 pub mod driver;
 pub mod mutate;
+pub mod protocol;
 pub mod targets;
 
 pub use driver::{replay_regressions, run_target, Failure, FailureKind, Options, Report};

@@ -113,6 +113,18 @@ pub const TARGETS: &[Target] = &[
         material: || Material::binary(corpus::wire::control()),
     },
     Target {
+        name: "world_server",
+        about: "the world's Server (geese_world::server) with one hostile intent batch, gene bundle or batch, control or presence message mid-step, run to its end",
+        run: crate::protocol::world_server,
+        material: || Material::binary(crate::protocol::world_server_seeds()),
+    },
+    Target {
+        name: "agent_host",
+        about: "an agent process's Host (geese_agent::host) with one hostile tick, percept, gene or presence message mid-step, run to its end",
+        run: crate::protocol::agent_host,
+        material: || Material::binary(crate::protocol::agent_host_seeds()),
+    },
+    Target {
         name: "genome",
         about: "a genome on the wire decoded and mapped with every shipped grammar, its tree built",
         run: genome,

@@ -51,3 +51,42 @@ fn kept_crash_inputs_stay_fixed() {
         replays.iter().filter_map(|r| r.outcome.as_ref().err().map(|e| format!("{}: {e}", r.path.display()))).collect();
     assert!(bad.is_empty(), "kept inputs fail again:\n{}", bad.join("\n"));
 }
+
+#[test]
+fn kept_wire_inputs_are_of_this_wire_version_and_still_reach_their_bug() {
+    // A kept input of an older wire version is rejected at its version byte and tests
+    // nothing: after a version bump its first byte is updated (the messages it holds
+    // did not change shape) and this test says so.
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz/regressions/run_info");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).expect("fuzz/regressions/run_info") {
+        let bytes = std::fs::read(entry.expect("entry").path()).expect("kept input");
+        assert_eq!(bytes.first(), Some(&geese_proto::WIRE_VERSION), "kept input of another wire version");
+        geese_proto::decode::<geese_proto::net::RunInfo>(&bytes).expect_err("the grid-0 geometry is rejected");
+        // The same bytes with the geometry left unchecked decode: the geometry, and
+        // nothing before it, is what is rejected.
+        let raw: UncheckedRunInfo = geese_proto::decode(&bytes).expect("decodes with the geometry unchecked");
+        assert_eq!(raw.geometry.grid, 0, "the kept input is the grid-0 geometry");
+        seen += 1;
+    }
+    assert!(seen > 0);
+}
+
+/// [`geese_proto::net::RunInfo`]'s layout with its geometry's fields left unchecked.
+#[derive(serde::Deserialize)]
+#[allow(dead_code)]
+struct UncheckedRunInfo {
+    spec: geese_proto::net::NetRunSpec,
+    geometry: UncheckedGeometry,
+    hub: geese_proto::ObjectInfo,
+    next_step: u64,
+    cells: Vec<u32>,
+}
+
+#[derive(serde::Deserialize)]
+#[allow(dead_code)]
+struct UncheckedGeometry {
+    width: i32,
+    height: i32,
+    grid: i32,
+}
