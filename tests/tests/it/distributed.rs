@@ -41,6 +41,22 @@ pub(crate) fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunC
     c
 }
 
+/// 24 agents in small cells (they change cell often), with perturbations that add
+/// obstacles, kill a quarter of the agents, lower IP and switch lateral transfer off
+/// and on again.
+pub(crate) fn perturbed(steps: u64) -> RunConfig {
+    let mut cfg = config(24, steps, 9, Layout::Reference);
+    cfg.world.grid = 5;
+    cfg.perturbations = vec![
+        Scheduled { at: 40, change: Perturbation::AddObstacles { count: 2, radius: 6 } },
+        Scheduled { at: 80, change: Perturbation::KillFraction(0.25) },
+        Scheduled { at: 120, change: Perturbation::SetIp(0.5) },
+        Scheduled { at: 160, change: Perturbation::SetLateralTransfer(false) },
+        Scheduled { at: 200, change: Perturbation::SetLateralTransfer(true) },
+    ];
+    cfg
+}
+
 pub(crate) fn in_process(cfg: &RunConfig) -> Vec<StepReport> {
     let spec = cfg.clone().validate().expect("valid config");
     let mut t = Trial::new(&spec).expect("world builds");
@@ -118,15 +134,7 @@ fn hosted_agents_and_perturbations_equal_in_process() {
     let _one_at_a_time = serial();
     // Three processes hosting 8 agents each, small cells (agents change cell often),
     // and perturbations that kill agents and switch lateral transfer off and on.
-    let mut cfg = config(24, 300, 9, Layout::Reference);
-    cfg.world.grid = 5;
-    cfg.perturbations = vec![
-        Scheduled { at: 40, change: Perturbation::AddObstacles { count: 2, radius: 6 } },
-        Scheduled { at: 80, change: Perturbation::KillFraction(0.25) },
-        Scheduled { at: 120, change: Perturbation::SetIp(0.5) },
-        Scheduled { at: 160, change: Perturbation::SetLateralTransfer(false) },
-        Scheduled { at: 200, change: Perturbation::SetLateralTransfer(true) },
-    ];
+    let cfg = perturbed(300);
     let expected = in_process(&cfg);
     assert!(expected.last().is_some_and(|r| r.live_agents == 18));
     // Processes that read no cell topic (the world sends each its cells' percepts):

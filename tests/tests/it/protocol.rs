@@ -5,13 +5,13 @@
 //!
 //! Time is a value here: a stall shows as a wait that nothing ends, and the router
 //! fails the test rather than sleeping.
-use super::distributed::{config, in_process};
+use super::distributed::{config, in_process, perturbed};
 use geese_agent::host::{Host, Input, Next as HostNext, Out};
-use geese_orchestrator::config::{RunConfig, Scheduled};
+use geese_orchestrator::config::RunConfig;
 use geese_orchestrator::launch::{net_spec, NetOptions};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{Deadlines, IntentBatch, LossRates, NetReport, ReportMsg};
-use geese_proto::{decode, encode, Perturbation, StepReport};
+use geese_proto::{decode, encode, StepReport};
 use geese_world::hub::Released;
 use geese_world::server::{Next as ServerNext, Server};
 use geese_world::Layout;
@@ -235,15 +235,7 @@ fn hosting_processes_in_memory_equal_the_in_process_run_and_never_wait() {
 
 #[test]
 fn cell_readers_and_hosting_processes_mixed_with_perturbations_equal_in_process() {
-    let mut cfg = config(24, 250, 9, Layout::Reference);
-    cfg.world.grid = 5;
-    cfg.perturbations = vec![
-        Scheduled { at: 40, change: Perturbation::AddObstacles { count: 2, radius: 6 } },
-        Scheduled { at: 80, change: Perturbation::KillFraction(0.25) },
-        Scheduled { at: 120, change: Perturbation::SetIp(0.5) },
-        Scheduled { at: 160, change: Perturbation::SetLateralTransfer(false) },
-        Scheduled { at: 200, change: Perturbation::SetLateralTransfer(true) },
-    ];
+    let cfg = perturbed(250);
     let expected = in_process(&cfg);
     let mut net = Net::new(&cfg, 6, &[true, false, true, false], LossRates::default());
     net.run(false);
