@@ -206,6 +206,10 @@ impl Server {
     /// A liveliness token appeared (`alive`) or went on `key`. Returns the gene
     /// messages that a process leaving completes.
     pub fn on_presence(&mut self, alive: bool, key: &str) -> Released {
+        if matches!(self.phase, Phase::Over) {
+            // The run is over: everyone leaving now is the end, not a failure.
+            return Released::default();
+        }
         match keys::parse(&self.run, key) {
             p @ (Parsed::AgentsPresence { agents } | Parsed::CellsPresence { agents })
                 if !p.within(self.spec.agents) =>
@@ -240,7 +244,7 @@ impl Server {
             Parsed::OrchestratorPresence => {
                 if alive {
                     self.orchestrator = true;
-                } else if self.spec.expect_orchestrator && !matches!(self.phase, Phase::Over) {
+                } else if self.spec.expect_orchestrator {
                     tracing::warn!("the orchestrator left; stopping");
                     self.stop = true;
                 }
@@ -798,6 +802,21 @@ mod tests {
         // The stop that follows is still obeyed.
         s.on_control(&encode(&Control::Stop).unwrap());
         assert!(matches!(s.next(t0), Next::Finished { outcome: Ok(false), .. }));
+    }
+
+    #[test]
+    fn processes_leaving_after_the_end_change_nothing() {
+        let t0 = Instant::now();
+        let mut s = Server::new(spec(2, 1), t0).unwrap();
+        let a = range(0, 2);
+        join(&mut s, a, true);
+        published(&s.next(t0));
+        answer(&mut s, a, 1);
+        report(s.next(t0));
+        assert!(matches!(s.next(t0), Next::Finished { outcome: Ok(true), .. }));
+        join(&mut s, a, false);
+        assert_eq!(s.processes(), 1, "the last processes leaving are the end, not a departure");
+        assert!(s.world().bodies().iter().all(|b| b.live));
     }
 
     #[test]
