@@ -153,24 +153,26 @@ pub fn agent_host(b: &[u8]) -> bool {
     acted
 }
 
+/// Append each of `msgs`, after the selector byte `sel`, to `v`.
+fn prefixed(sel: u8, msgs: Vec<Vec<u8>>, v: &mut Vec<Vec<u8>>) {
+    v.extend(msgs.into_iter().map(|m| [vec![sel], m].concat()));
+}
+
 /// Seeds: a selector byte for each handler, then a valid message for it.
 pub fn world_server_seeds() -> Vec<Vec<u8>> {
     let (a, _) = ranges();
     let mut v = Vec::new();
-    let with = |sel: u8, msgs: Vec<Vec<u8>>, v: &mut Vec<Vec<u8>>| {
-        v.extend(msgs.into_iter().map(|m| [vec![sel], m].concat()));
-    };
-    with(0, corpus::wire::intents(), &mut v);
-    with(1, corpus::wire::gene_bundle(), &mut v);
-    with(2, corpus::wire::gene_batch(), &mut v);
-    with(3, corpus::wire::control(), &mut v);
+    prefixed(0, corpus::wire::intents(), &mut v);
+    prefixed(1, corpus::wire::gene_bundle(), &mut v);
+    prefixed(2, corpus::wire::gene_batch(), &mut v);
+    prefixed(3, corpus::wire::control(), &mut v);
     let presence = vec![
         keys::agents_presence(RUN, a).into_bytes(),
         keys::cells_presence(RUN, a).into_bytes(),
         keys::orchestrator_presence(RUN).into_bytes(),
     ];
-    with(4, presence.clone(), &mut v);
-    with(0x84, presence, &mut v);
+    prefixed(4, presence.clone(), &mut v);
+    prefixed(0x84, presence, &mut v);
     v
 }
 
@@ -178,16 +180,13 @@ pub fn world_server_seeds() -> Vec<Vec<u8>> {
 pub fn agent_host_seeds() -> Vec<Vec<u8>> {
     let (_, b) = ranges();
     let mut v = Vec::new();
-    let with = |sel: u8, msgs: Vec<Vec<u8>>, v: &mut Vec<Vec<u8>>| {
-        v.extend(msgs.into_iter().map(|m| [vec![sel], m].concat()));
-    };
-    with(0, corpus::wire::tick(), &mut v);
-    with(0x80 | 1, corpus::wire::percept(), &mut v);
-    with(0x80 | 2, corpus::wire::gene_batch(), &mut v);
-    with(3, corpus::wire::host_percepts(), &mut v);
-    with(4, corpus::wire::host_genes(), &mut v);
+    prefixed(0, corpus::wire::tick(), &mut v);
+    prefixed(0x80 | 1, corpus::wire::percept(), &mut v);
+    prefixed(0x80 | 2, corpus::wire::gene_batch(), &mut v);
+    prefixed(3, corpus::wire::host_percepts(), &mut v);
+    prefixed(4, corpus::wire::host_genes(), &mut v);
     let presence = vec![keys::agents_presence(RUN, b).into_bytes(), keys::world_presence(RUN).into_bytes()];
-    with(5, presence.clone(), &mut v);
-    with(0x40 | 5, presence, &mut v);
+    prefixed(5, presence.clone(), &mut v);
+    prefixed(0x40 | 5, presence, &mut v);
     v
 }

@@ -256,29 +256,28 @@ impl Server {
 
     /// A message on the control plane.
     pub fn on_control(&mut self, bytes: &[u8]) {
-        match decode::<Control>(bytes) {
-            Ok(Control::Stop) => {
-                self.stop = true;
-                self.stop_requested = true;
-            }
-            Ok(c @ Control::Schedule { .. }) => match c.validate(&self.world.geometry()) {
-                Ok(()) => {
-                    if let Control::Schedule { at_step, change } = c {
-                        self.scheduled.push((at_step, change));
-                    }
-                }
-                Err(e) => {
-                    tracing::warn!("control command rejected: {e}");
-                    self.count_rejected();
-                }
-            },
-            Ok(Control::Start) => {}
+        let command = match decode::<Control>(bytes) {
+            Ok(c) => c,
             Err(e) => {
                 // One line per message at debug; the step's report counts them and
                 // says so once (a flood of hostile messages must not flood the log).
                 tracing::debug!("control message dropped: {e}");
                 self.count_rejected();
+                return;
             }
+        };
+        if let Err(e) = command.validate(&self.world.geometry()) {
+            tracing::warn!("control command rejected: {e}");
+            self.count_rejected();
+            return;
+        }
+        match command {
+            Control::Stop => {
+                self.stop = true;
+                self.stop_requested = true;
+            }
+            Control::Schedule { at_step, change } => self.scheduled.push((at_step, change)),
+            Control::Start => {}
         }
     }
 

@@ -20,7 +20,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
-use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver};
+use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
 use tokio::sync::Notify;
 use zenoh::sample::SampleKind;
 use zenoh::{Session, Wait};
@@ -99,24 +99,11 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
         .map_err(zerr)?;
     let (publish, released) = unbounded_channel::<Released>();
     spawn_publisher(&session, released, server.clone());
-    let (s, p) = (server.clone(), publish.clone());
-    let _genes = session
-        .declare_subscriber(keys::all_gene_batches(&run))
-        .callback(move |sample| {
-            let out = lock(&s).on_gene_batch(sample.key_expr().as_str(), &sample.payload().to_bytes());
-            let _ = p.send(out);
-        })
-        .await
-        .map_err(zerr)?;
-    let (s, p) = (server.clone(), publish.clone());
-    let _gene_bundles = session
-        .declare_subscriber(keys::all_agents_genes(&run))
-        .callback(move |sample| {
-            let out = lock(&s).on_gene_bundle(sample.key_expr().as_str(), &sample.payload().to_bytes());
-            let _ = p.send(out);
-        })
-        .await
-        .map_err(zerr)?;
+    // Per-cell batches (processes of earlier versions, tests) and bundles.
+    let _genes =
+        gene_subscriber(&session, keys::all_gene_batches(&run), &server, &publish, Server::on_gene_batch).await?;
+    let _gene_bundles =
+        gene_subscriber(&session, keys::all_agents_genes(&run), &server, &publish, Server::on_gene_bundle).await?;
     let (s, w) = (server.clone(), wake.clone());
     let _ctl = session
         .declare_subscriber(keys::all_ctl(&run))
@@ -165,6 +152,26 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
     tokio::time::sleep(Duration::from_millis(100)).await;
     let _ = session.close().await;
     outcome.map(|_| ())
+}
+
+/// Files what arrives on `key` into the server with `file` (in the subscriber callback)
+/// and hands what that releases to the publisher.
+async fn gene_subscriber(
+    session: &Session,
+    key: String,
+    server: &Shared,
+    publish: &UnboundedSender<Released>,
+    file: fn(&mut Server, &str, &[u8]) -> Released,
+) -> Result<zenoh::pubsub::Subscriber<()>> {
+    let (s, p) = (server.clone(), publish.clone());
+    session
+        .declare_subscriber(key)
+        .callback(move |sample| {
+            let out = file(&mut lock(&s), sample.key_expr().as_str(), &sample.payload().to_bytes());
+            let _ = p.send(out);
+        })
+        .await
+        .map_err(zerr)
 }
 
 /// Drive the server to the end of the run: publish what it returns, wait for what it
