@@ -74,6 +74,10 @@ pub enum BuildError {
     Leaf(#[from] LeafError),
     #[error("composite node has no children where one is required")]
     Empty,
+    #[error("phenotype does not parse: {0}")]
+    Parse(String),
+    #[error("{0}")]
+    Program(String),
 }
 
 /// A behaviour tree plus its node statuses.
@@ -290,6 +294,14 @@ impl Bt {
     pub fn actions(&self) -> impl Iterator<Item = (&Leaf, Status)> {
         self.nodes.iter().zip(&self.status).filter_map(|(n, s)| match &n.kind {
             Kind::Leaf(l, Tag::Act) => Some((l, *s)),
+            _ => None,
+        })
+    }
+
+    /// Every leaf of the tree.
+    pub fn leaves(&self) -> impl Iterator<Item = &Leaf> {
+        self.nodes.iter().filter_map(|n| match &n.kind {
+            Kind::Leaf(l, _) => Some(l),
             _ => None,
         })
     }

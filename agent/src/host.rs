@@ -28,7 +28,7 @@
 //! those subscriptions are in place in time. Hence [`Next::Act`] is an ordered list.
 use crate::ge::Grammar;
 use crate::inbox::{CellGenes, Inbox};
-use crate::{GeneCache, GeneRef, Learner, LearnerConfig};
+use crate::{GeneCache, GeneRef, Learner, LearnerConfig, Program};
 use foldhash::fast::FixedState;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
@@ -217,8 +217,18 @@ impl Host {
             let grammar = Grammar::parse(&info.spec.grammar_text)
                 .map_err(|e| HostError::Grammar { name: info.spec.grammar_name.clone(), reason: e.to_string() })?;
             let (cfg, grammar) = (Arc::new(cfg), Arc::new(grammar));
+            let program: Program = serde_json::from_str(&info.spec.program_json)
+                .map_err(|e| HostError::Learner(format!("program: {e}")))?;
+            let task = serde_json::from_str::<serde_json::Value>(&info.spec.world_json)
+                .ok()
+                .and_then(|w| w.get("task").and_then(|t| t.as_str()).map(str::to_string))
+                .unwrap_or_else(|| "foraging".into());
+            let prepared = program.prepare(&task).map_err(|e| HostError::Learner(e.to_string()))?;
             for id in range.ids() {
-                learners.push(Learner::new(id, cfg.clone(), grammar.clone(), geom, info.hub, info.spec.seed));
+                let role = prepared.role(id, info.spec.seed);
+                let l = Learner::with_role(id, cfg.clone(), grammar.clone(), geom, info.hub, info.spec.seed, role)
+                    .map_err(|e| HostError::Learner(format!("agent {id}: {e}")))?;
+                learners.push(l);
                 loss_streams.push(derive(info.spec.seed, Owner::Agent(id), Purpose::Loss) ^ LOSS_SALT_PERCEPT);
             }
         }
@@ -252,6 +262,11 @@ impl Host {
             pending: None,
             clock: PhaseClock::default(),
         })
+    }
+
+    /// This process's agents as population members, in agent order.
+    pub fn members(&self) -> Vec<crate::program::Member> {
+        self.learners.iter().map(Learner::member).collect()
     }
 
     /// The agents this process speaks for.

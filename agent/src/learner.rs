@@ -13,8 +13,9 @@
 //! genomes"), and a pool that reaches ST within the step only borrows them for that
 //! step's genetic step. The learners of one process share a
 //! [`GeneCache`]: scratch buffers, and the trees of adopted phenotypes.
-use crate::bt::{Bt, BuildError};
+use crate::bt::{Bt, BuildError, Status};
 use crate::ge::{self, Candidate, GeParams, Grammar, Individual, Member};
+use crate::program::{FitnessTerms, GeneDict, Role, StoredGene};
 use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
@@ -53,8 +54,32 @@ pub struct LearnerConfig {
     /// Carry-over factor (1 − β).
     pub carry_over: f64,
     pub fitness: FitnessVariant,
+    /// Terms of the running fitness; `None` = the algorithm's own (E+B for BeTr-GEESE
+    /// and Multi-GEESE, E+C+F for GEESE-BT).
+    pub terms: Option<FitnessTerms>,
+    /// When the genetic operators run; `None` = the algorithm's own.
+    pub triggers: Option<Triggers>,
     pub ge: GeParams,
+    /// GE parameters of the Multi-GEESE combine phase (`test_new.txt`: genomes up to
+    /// 500 codons, crossover probability 0.1; REFERENCE §5.1).
+    pub combine_ge: GeParams,
 }
+
+/// When the genetic operators run (REFERENCE §6.2 step 7, §6.7).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Triggers {
+    /// The pool reached ST; or the stagnation rule (age > `stagnation_age` and fewer than
+    /// `stagnation_explore` cells explored).
+    Storage,
+    /// The reference GEESE-BT learner: the pool reached ST while fitness ≥ 0, age >
+    /// `stagnation_age` and F ≤ 0 (an agent that delivers keeps its gene); stagnation
+    /// (fresh individuals) when fitness ≤ 0 and age > 100.
+    GeeseBt,
+}
+
+/// Age after which a GEESE-BT agent with no positive fitness takes fresh individuals.
+pub const GEESE_BT_STAGNATION_AGE: u32 = 100;
 
 impl Default for LearnerConfig {
     fn default() -> Self {
@@ -66,7 +91,10 @@ impl Default for LearnerConfig {
             initial_individuals: 3,
             carry_over: 0.1,
             fitness: FitnessVariant::Code,
+            terms: None,
+            triggers: None,
             ge: GeParams::default(),
+            combine_ge: GeParams { max_genome_length: 500, crossover_prob: 0.1, ..GeParams::default() },
         }
     }
 }
@@ -92,7 +120,10 @@ impl LearnerConfig {
         if self.stagnation_explore > 0 && self.stagnation_individuals < 4 {
             return bad("stagnation_individuals", "must be at least 4 when the stagnation rule is on");
         }
-        self.ge.validate().map_err(|e| LearnerConfigError::Invalid { field: "ge", reason: e.to_string() })
+        self.ge.validate().map_err(|e| LearnerConfigError::Invalid { field: "ge", reason: e.to_string() })?;
+        self.combine_ge
+            .validate()
+            .map_err(|e| LearnerConfigError::Invalid { field: "combine_ge", reason: e.to_string() })
     }
 }
 
@@ -137,20 +168,73 @@ pub fn genome_digest(genome: &[u32]) -> u64 {
     h
 }
 
+/// The tree of a learner's individual: plain, or with the combine phase's GeneDict
+/// genes in its controller slots.
+fn tree_of(ind: &Individual, kind: &Kind) -> Result<Bt, BuildError> {
+    match kind {
+        Kind::Combine(dict) => {
+            let p = ind.phenotype.as_deref().ok_or(BuildError::Empty)?;
+            crate::program::build_tree(p, Some(dict)).map_err(BuildError::Program)
+        }
+        _ => build_tree(ind),
+    }
+}
+
+/// The GeneDict update of the collect phase (REFERENCE §7.1): when the tree holds
+/// exactly one action and it succeeded this tick, store the gene under the action's
+/// class unless a fitter one is stored.
+fn store_action(dict: &mut GeneDict, tree: &Bt, gene: &Individual) {
+    let mut acts = tree.actions();
+    let (Some((leaf, Status::Success)), None) = (acts.next(), acts.next()) else { return };
+    let Some(key) = leaf.class_key() else { return };
+    let better = dict.get(key).is_none_or(|s| s.fitness < gene.fitness);
+    if better {
+        if let Some(p) = &gene.phenotype {
+            let stored = StoredGene { phenotype: p.clone(), genome: gene.genome.clone(), fitness: gene.fitness };
+            dict.insert(key.to_string(), stored);
+        }
+    }
+}
+
 /// Build the behaviour tree of a valid individual.
 pub fn build_tree(ind: &Individual) -> Result<Bt, BuildError> {
     match &ind.phenotype {
         Some(p) => {
-            let root = ge::parse_phenotype(p).map_err(|_| BuildError::Empty)?;
+            let root = ge::parse_phenotype(p).map_err(|e| BuildError::Parse(e.to_string()))?;
             Bt::from_pnode(&root)
         }
         None => Err(BuildError::Empty),
     }
 }
 
-/// One BeTr-GEESE agent.
+/// What a learner does beyond the BeTr-GEESE loop.
+enum Kind {
+    BetrGeese,
+    GeeseBt,
+    /// Multi-GEESE collect: fills its GeneDict every step (§7.1).
+    Collect(GeneDict),
+    /// Multi-GEESE combine: controller slots come from this GeneDict (§7.2).
+    Combine(Arc<GeneDict>),
+    /// Non-evolving: no lateral transfer, no genetic step.
+    Fixed,
+}
+
+/// The GE parameters a learner of this kind uses.
+fn params<'a>(cfg: &'a LearnerConfig, kind: &Kind) -> &'a GeParams {
+    match kind {
+        Kind::Combine(_) => &cfg.combine_ge,
+        _ => &cfg.ge,
+    }
+}
+
+/// One agent: a BeTr-GEESE, GEESE-BT or Multi-GEESE learner, or a fixed controller.
 pub struct Learner {
     id: AgentId,
+    kind: Kind,
+    terms: FitnessTerms,
+    triggers: Triggers,
+    /// Diversity D of the current phenotype (for the D term).
+    gene_d: f64,
     cfg: Arc<LearnerConfig>,
     grammar: Arc<Grammar>,
     view: View,
@@ -399,7 +483,7 @@ impl GeneCache {
 }
 
 impl Learner {
-    /// A fresh learner that knows the hub, with its first random gene.
+    /// A fresh BeTr-GEESE learner that knows the hub, with its first random gene.
     pub fn new(
         id: AgentId,
         cfg: Arc<LearnerConfig>,
@@ -407,26 +491,70 @@ impl Learner {
         geom: Geometry,
         hub: ObjectInfo,
         run_seed: u64,
-    ) -> Learner {
+    ) -> Result<Learner, BuildError> {
+        Learner::with_role(id, cfg, grammar, geom, hub, run_seed, Role::BetrGeese)
+    }
+
+    /// A fresh agent of `role` that knows the hub. A learner starts with its first
+    /// random gene; its tree must build (an error, never an empty tree).
+    pub fn with_role(
+        id: AgentId,
+        cfg: Arc<LearnerConfig>,
+        grammar: Arc<Grammar>,
+        geom: Geometry,
+        hub: ObjectInfo,
+        run_seed: u64,
+        role: Role,
+    ) -> Result<Learner, BuildError> {
         let rng = |p| ChaCha8Rng::seed_from_u64(derive(run_seed, Owner::Agent(id), p));
         let mut rng_ge = rng(Purpose::Evolution);
         let mut view = View::new(geom, id);
         view.memory.insert(hub);
-        // Three individuals are created (consuming their draws); the first is used.
-        let mut first = None;
-        for _ in 0..cfg.initial_individuals.max(1) {
-            let ind = ge::random_individual(&grammar, &cfg.ge, &mut rng_ge);
-            first.get_or_insert(ind);
-        }
-        let mut gene = first.unwrap_or_else(|| ge::random_individual(&grammar, &cfg.ge, &mut rng_ge));
-        let d = gene.fitness;
+        let (kind, fixed_tree) = match role {
+            Role::BetrGeese => (Kind::BetrGeese, None),
+            Role::GeeseBt => (Kind::GeeseBt, None),
+            Role::Collect => (Kind::Collect(GeneDict::new()), None),
+            Role::Combine(d) => (Kind::Combine(d), None),
+            Role::Fixed(t) => (Kind::Fixed, Some(t)),
+        };
+        let (gene, tree) = match fixed_tree {
+            Some(t) => (Individual { valid: true, fitness: 0.0, ..Individual::default() }, t),
+            None => {
+                // Three individuals are created (consuming their draws); the first is used.
+                let p = params(&cfg, &kind);
+                let mut first = None;
+                for _ in 0..cfg.initial_individuals.max(1) {
+                    let ind = ge::random_individual(&grammar, p, &mut rng_ge);
+                    first.get_or_insert(ind);
+                }
+                let gene = match first {
+                    Some(g) => g,
+                    None => ge::random_individual(&grammar, p, &mut rng_ge),
+                };
+                let tree = tree_of(&gene, &kind)?;
+                (gene, tree)
+            }
+        };
+        let terms = cfg.terms.unwrap_or(match kind {
+            Kind::GeeseBt => FitnessTerms::GEESE_BT,
+            _ => FitnessTerms::BETR,
+        });
+        let triggers = cfg.triggers.unwrap_or(match kind {
+            Kind::GeeseBt => Triggers::GeeseBt,
+            _ => Triggers::Storage,
+        });
+        let mut gene = gene;
+        let gene_d = gene.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0);
         gene.fitness = match cfg.fitness {
             FitnessVariant::Code => 0.0,
-            FitnessVariant::Paper => d,
+            FitnessVariant::Paper => gene_d,
         };
-        let tree = build_tree(&gene).unwrap_or_else(|_| Bt::parallel(&[]));
-        Learner {
+        Ok(Learner {
             id,
+            kind,
+            terms,
+            triggers,
+            gene_d,
             gene_digest: genome_digest(&gene.genome),
             gene,
             tree,
@@ -445,6 +573,37 @@ impl Learner {
             view,
             cfg,
             grammar,
+        })
+    }
+
+    /// Is this a fixed (non-evolving) agent?
+    pub fn is_fixed(&self) -> bool {
+        matches!(self.kind, Kind::Fixed)
+    }
+
+    /// This agent as a population member: its phenotype, genome, fitness and (for
+    /// Multi-GEESE) GeneDict.
+    pub fn member(&self) -> crate::program::Member {
+        let dict = match &self.kind {
+            Kind::Collect(d) => Some(d.clone()),
+            Kind::Combine(d) => Some((**d).clone()),
+            _ => None,
+        };
+        crate::program::Member {
+            phenotype: self.gene.phenotype.as_deref().unwrap_or_default().to_string(),
+            genome: Some(self.gene.genome.to_vec()),
+            fitness: Some(self.gene.fitness),
+            agent: Some(self.id),
+            gene_dict: dict,
+        }
+    }
+
+    /// The GeneDict (Multi-GEESE learners).
+    pub fn gene_dict(&self) -> Option<&GeneDict> {
+        match &self.kind {
+            Kind::Collect(d) => Some(d),
+            Kind::Combine(d) => Some(d),
+            _ => None,
         }
     }
 
@@ -468,7 +627,7 @@ impl Learner {
         self.regime = percept.regime;
         self.have_percept = self.view.load(percept);
         self.expected.clear();
-        if !self.have_percept || !self.regime.lateral_transfer {
+        if !self.have_percept || !self.regime.lateral_transfer || self.is_fixed() {
             return None;
         }
         self.expected.extend(percept.agents.iter().filter(|a| a.id != self.id && a.live && a.learning).map(|a| a.id));
@@ -510,12 +669,14 @@ impl Learner {
         self.visited.insert(self.view.cell());
         let explore = self.visited.len().saturating_sub(1) as f64;
         // 4. fitness.
-        self.gene.fitness = match self.cfg.fitness {
-            FitnessVariant::Code => {
-                self.cfg.carry_over * self.carry + explore + self.tree.successful_selectors() as f64
-            }
-            FitnessVariant::Paper => self.cfg.carry_over * self.gene.fitness + explore + self.tree.paper_feedback(),
-        };
+        self.gene.fitness = self.fitness_now(explore);
+        if self.is_fixed() {
+            return self.intent(stats);
+        }
+        // 5. Multi-GEESE collect: the GeneDict update.
+        if let Kind::Collect(dict) = &mut self.kind {
+            store_action(dict, &self.tree, &self.gene);
+        }
         // 6. sense: lateral transfer through the IP filter; its survivors join the pool
         //    (`cache.lt.joining`).
         cache.lt.clear();
@@ -524,24 +685,64 @@ impl Learner {
         }
         // 7–8. genetic operators and update. A pool that reaches ST is used and emptied
         // at once, so the survivors join it only as candidates borrowing their genomes.
-        if self.pool.len() + cache.lt.joining.len() >= self.cfg.st {
+        let storage_ready = match self.triggers {
+            Triggers::Storage => true,
+            Triggers::GeeseBt => {
+                self.gene.fitness >= 0.0 && self.age > self.cfg.stagnation_age && self.view.delivered <= 0
+            }
+        };
+        if storage_ready && self.pool.len() + cache.lt.joining.len() >= self.cfg.st {
             self.evolve(genes, cache);
             stats.genetic = GeneticTrigger::Storage;
             return self.intent(stats);
         }
         self.keep_joining(genes, cache);
-        if self.cfg.stagnation_explore > 0
-            && self.age > self.cfg.stagnation_age
-            && (explore as u32) < self.cfg.stagnation_explore
-        {
+        let stagnant = match self.triggers {
+            Triggers::Storage => {
+                self.cfg.stagnation_explore > 0
+                    && self.age > self.cfg.stagnation_age
+                    && (explore as u32) < self.cfg.stagnation_explore
+            }
+            Triggers::GeeseBt => self.gene.fitness <= 0.0 && self.age > GEESE_BT_STAGNATION_AGE,
+        };
+        if stagnant {
             for _ in 0..self.cfg.stagnation_individuals {
-                let ind = ge::random_individual(&self.grammar, &self.cfg.ge, &mut self.rng_ge);
+                let ind = ge::random_individual(&self.grammar, params(&self.cfg, &self.kind), &mut self.rng_ge);
                 self.pool.push(ind);
             }
             self.evolve(genes, cache);
             stats.genetic = GeneticTrigger::Stagnation;
         }
         self.intent(stats)
+    }
+
+    /// The running fitness after this tick (REFERENCE §6.5, §6.7): carry-over plus the
+    /// terms in force.
+    fn fitness_now(&self, explore: f64) -> f64 {
+        let t = self.terms;
+        let mut a = match self.cfg.fitness {
+            FitnessVariant::Code => self.cfg.carry_over * self.carry,
+            FitnessVariant::Paper => self.cfg.carry_over * self.gene.fitness,
+        };
+        if t.e {
+            a += explore;
+        }
+        if t.b {
+            a += match self.cfg.fitness {
+                FitnessVariant::Code => self.tree.successful_selectors() as f64,
+                FitnessVariant::Paper => self.tree.paper_feedback(),
+            };
+        }
+        if t.d {
+            a += self.gene_d;
+        }
+        if t.c {
+            a += self.view.carried_weight() as f64;
+        }
+        if t.f {
+            a += self.view.delivered as f64;
+        }
+        a
     }
 
     /// The step's intent: the tree's operations, heading and the agent's numbers.
@@ -582,7 +783,10 @@ impl Learner {
             }
             let msg = by_sender.get(next).copied().filter(|&i| genes[i as usize].sender() == mate);
             match msg.map(|i| (i, &genes[i as usize])) {
-                Some((i, g)) if g.genome().len() <= self.cfg.ge.max_genome_length && g.fitness().is_finite() => {
+                Some((i, g))
+                    if g.genome().len() <= params(&self.cfg, &self.kind).max_genome_length
+                        && g.fitness().is_finite() =>
+                {
                     // Injected receiver-side loss.
                     if self.regime.gene_loss > 0.0 && self.rng_loss.random::<f64>() < self.regime.gene_loss {
                         *lost += 1;
@@ -618,7 +822,7 @@ impl Learner {
                     None => Joining::Own,
                     Some(i) => {
                         let g = &genes[i as usize];
-                        match cache.received.mapping(&self.grammar, g, &self.cfg.ge) {
+                        match cache.received.mapping(&self.grammar, g, params(&self.cfg, &self.kind)) {
                             Received::Invalid => {
                                 *lost += 1;
                                 continue;
@@ -662,20 +866,29 @@ impl Learner {
             Joining::Gene(i) => candidate(&genes[i as usize]),
             Joining::Mapped(k) => Candidate::of(&lt.mapped[k]),
         }));
-        let winner =
-            ge::genetic_step_on(workspace, &self.grammar, &mut pool, &self.cfg.ge, &mut self.rng_ge).map(|(w, _)| w);
+        let p = params(&self.cfg, &self.kind);
+        let winner = ge::genetic_step_on(workspace, &self.grammar, &mut pool, p, &mut self.rng_ge).map(|(w, _)| w);
         self.pool.clear();
         let Ok(mut winner) = winner else { return };
-        winner.materialize(&self.grammar, &self.cfg.ge);
-        let tree = match cache.tree(&winner) {
-            Ok(t) => t,
-            Err(_) => return,
+        winner.materialize(&self.grammar, p);
+        let built = match &self.kind {
+            Kind::Combine(_) => tree_of(&winner, &self.kind),
+            _ => cache.tree(&winner),
+        };
+        let Ok(tree) = built else {
+            // A phenotype of the run's own grammar whose tree does not build: the
+            // grammar names a leaf the engine lacks, which `Learner::new` already
+            // refused for the first gene; keep the current gene.
+            tracing::warn!(agent = self.id, "adopted phenotype does not build a tree; gene kept");
+            return;
         };
         self.carry = self.gene.fitness;
+        self.gene_d = winner.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0);
         winner.fitness = match self.cfg.fitness {
             FitnessVariant::Code => 0.0,
-            FitnessVariant::Paper => winner.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0),
+            FitnessVariant::Paper => self.gene_d,
         };
+        self.view.delivered = 0;
         self.gene_digest = genome_digest(&winner.genome);
         self.gene = winner;
         self.tree = tree;

@@ -37,6 +37,9 @@ pub enum Leaf {
     Explore(Motion),
     CompositeSingleCarry(ObjectKind),
     CompositeDrop(ObjectKind),
+    /// A Multi-GEESE controller slot whose action the agent's GeneDict lacks: always
+    /// FAILURE (REFERENCE §9.4; the reference code raises instead).
+    Absent,
 }
 
 /// Why a leaf text does not name a behaviour.
@@ -99,6 +102,7 @@ impl LeafSpec {
             "IsDropable" => Leaf::IsDropable(need(obj(true)?)?),
             "DidAvoidedObj" => Leaf::DidAvoidedObj(need(obj(true)?)?),
             "CanMove" => Leaf::CanMove,
+            "AbsentAction" => Leaf::Absent,
             "DummyNode" => Leaf::DummyNode,
             "MoveTowards" => Leaf::MoveTowards(need(obj(true)?)?, motion),
             "MoveAway" => Leaf::MoveAway(need(obj(true)?)?, motion),
@@ -125,6 +129,40 @@ impl Leaf {
         )
     }
 
+    /// The GeneDict key of an action leaf: its behaviour class name (REFERENCE §7.1),
+    /// the item not included; `None` for a condition.
+    pub fn class_key(&self) -> Option<&'static str> {
+        let normal = |m: &Motion| *m == Motion::Normal;
+        Some(match self {
+            Leaf::MoveTowards(_, m) if normal(m) => "MoveTowardsNormal",
+            Leaf::MoveTowards(..) => "MoveTowards",
+            Leaf::MoveAway(_, m) if normal(m) => "MoveAwayNormal",
+            Leaf::MoveAway(..) => "MoveAway",
+            Leaf::Explore(m) if normal(m) => "ExploreNormal",
+            Leaf::Explore(_) => "Explore",
+            Leaf::CompositeSingleCarry(_) => "CompositeSingleCarry",
+            Leaf::CompositeDrop(_) => "CompositeDrop",
+            _ => return None,
+        })
+    }
+
+    /// The object types the leaf names.
+    pub fn object(&self) -> Option<ObjectKind> {
+        match *self {
+            Leaf::NeighbourObjects(k) => k,
+            Leaf::IsCarrying(k)
+            | Leaf::IsVisitedBefore(k)
+            | Leaf::IsCarryable(k)
+            | Leaf::IsDropable(k)
+            | Leaf::DidAvoidedObj(k)
+            | Leaf::MoveTowards(k, _)
+            | Leaf::MoveAway(k, _)
+            | Leaf::CompositeSingleCarry(k)
+            | Leaf::CompositeDrop(k) => Some(k),
+            Leaf::CanMove | Leaf::DummyNode | Leaf::Explore(_) | Leaf::Absent => None,
+        }
+    }
+
     /// Display name as in the reference listings, e.g. `MoveTowards[Hub]`.
     pub fn name(&self) -> String {
         let m = |m: &Motion| if *m == Motion::Normal { "Normal" } else { "" };
@@ -143,6 +181,7 @@ impl Leaf {
             Leaf::Explore(mo) => format!("Explore{}", m(mo)),
             Leaf::CompositeSingleCarry(k) => format!("CompositeSingleCarry[{}]", k.name()),
             Leaf::CompositeDrop(k) => format!("CompositeDrop[{}]", k.name()),
+            Leaf::Absent => "AbsentAction".into(),
         }
     }
 
@@ -172,6 +211,7 @@ impl Leaf {
                         && is_single_carry(v, k)
                         && single_carry(v, k))
             }
+            Leaf::Absent => false,
             Leaf::CompositeDrop(k) => {
                 // FailureIsSuccess(NeighbourObjects(none)): senses, result ignored.
                 neighbour_objects(v, None);
@@ -189,8 +229,12 @@ fn neighbour_objects(v: &mut View, item: Option<ObjectKind>) -> bool {
     let mut found = false;
     // Take the list out to satisfy the borrow checker without cloning.
     let objs = if known { std::mem::take(&mut v.cell_objects) } else { Vec::new() };
-    let extra: Vec<ObjectInfo> =
-        if known { Vec::new() } else { v.impassable.iter().filter(|o| v.registered_in(o, cell)).copied().collect() };
+    let extra: Vec<ObjectInfo> = if known {
+        Vec::new()
+    } else {
+        let around: &[ObjectInfo] = if v.in_area(cell) { &v.area } else { &v.impassable };
+        around.iter().filter(|o| v.registered_in(o, cell)).copied().collect()
+    };
     for o in objs.iter().chain(extra.iter()) {
         if item.is_some_and(|k| k != o.kind) {
             continue;

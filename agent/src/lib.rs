@@ -13,7 +13,9 @@
 //!   (percepts, genes, intents, deadlines) driven by messages in and a clock value,
 //!   returning what to publish and subscribe; the `geese-agent` binary is a shell
 //!   around it.
-//! - [`learner`]: the BeTr-GEESE per-step loop (lateral transfer, genetic step, fitness),
+//! - [`program`]: what a run's agents run (an algorithm, or a fixed population),
+//!   population files, GeneDicts and the Multi-GEESE controller substitution.
+//! - [`learner`]: the per-step loop of every algorithm (lateral transfer, genetic step, fitness),
 //!   and the per-process [`GeneCache`] of received genes' mappings (which also holds the
 //!   genetic step's scratch buffers and the behaviour trees of adopted phenotypes).
 pub mod bt;
@@ -23,8 +25,10 @@ pub mod host;
 pub mod inbox;
 pub mod learner;
 pub mod leaves;
+pub mod program;
 pub mod view;
 
-pub use learner::{FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig};
+pub use learner::{FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig, Triggers};
+pub use program::{Algorithm, FitnessTerms, Phase, Population, Program, Role, Strategy};
 #[cfg(test)]
 mod tests;

@@ -70,12 +70,21 @@ pub struct View {
     pub cell_agents: usize,
     /// Impassable objects near `known_cell`.
     pub impassable: Vec<ObjectInfo>,
+    /// Cells within this many columns and rows of `known_cell` are known too: their
+    /// objects are in `area` (the percept's reach).
+    pub reach: i32,
+    /// Non-agent objects of the cells within `reach` of `known_cell` (not in it), as
+    /// changed by this tick so far.
+    pub area: Vec<ObjectInfo>,
     /// The blackboard (REFERENCE §2.2), one per agent.
     pub blackboard: KindMap,
     /// Static memory of hubs, sites and boundaries ever sensed.
     pub memory: KindMap,
     /// Ops for the world, in order.
     pub ops: Vec<Op>,
+    /// Weight this agent dropped into a drop zone (food into the hub, debris into a
+    /// boundary) since the learner last cleared it: GEESE-BT's task reward F.
+    pub delivered: i32,
 }
 
 impl View {
@@ -90,9 +99,12 @@ impl View {
             cell_objects: Vec::new(),
             cell_agents: 0,
             impassable: Vec::new(),
+            reach: 0,
+            area: Vec::new(),
             blackboard: KindMap::default(),
             memory: KindMap::default(),
             ops: Vec::new(),
+            delivered: 0,
         }
     }
 
@@ -112,6 +124,9 @@ impl View {
         self.impassable.clear();
         self.impassable.extend(p.objects.iter().filter(|o| !o.kind.passable()));
         self.impassable.extend_from_slice(&p.nearby_impassable);
+        self.reach = i32::from(p.reach);
+        self.area.clear();
+        self.area.extend_from_slice(&p.area);
         self.ops.clear();
         true
     }
@@ -125,13 +140,28 @@ impl View {
         self.geom.registered_in(o.pos, o.radius, cell)
     }
 
+    /// Is `cell` one of the cells around the percept's whose objects are known?
+    pub fn in_area(&self, cell: CellIdx) -> bool {
+        if self.reach == 0 || cell == self.known_cell {
+            return false;
+        }
+        let ((c, r), (kc, kr)) = (self.geom.cell_col_row(cell), self.geom.cell_col_row(self.known_cell));
+        (c - kc).abs() <= self.reach && (r - kr).abs() <= self.reach
+    }
+
     /// Non-agent objects registered in the agent's current cell, as far as it knows:
-    /// everything for the percept's cell, only impassable objects elsewhere.
+    /// everything for the percept's cell and the cells of its area, only impassable
+    /// objects elsewhere.
     pub fn objects_here(&self) -> impl Iterator<Item = &ObjectInfo> {
         let cell = self.cell();
         let known = cell == self.known_cell;
-        let (a, b): (&[ObjectInfo], &[ObjectInfo]) =
-            if known { (&self.cell_objects, &[]) } else { (&[], &self.impassable) };
+        let (a, b): (&[ObjectInfo], &[ObjectInfo]) = if known {
+            (&self.cell_objects, &[])
+        } else if self.in_area(cell) {
+            (&[], &self.area)
+        } else {
+            (&[], &self.impassable)
+        };
         a.iter().chain(b.iter().filter(move |o| self.registered_in(o, cell)))
     }
 
@@ -168,13 +198,21 @@ impl View {
 
     /// Pick up `o` (SingleCarry). False if it is no longer in the cell.
     pub fn pick(&mut self, o: ObjectId) -> bool {
-        if self.cell() != self.known_cell {
-            return false;
-        }
-        let Some(i) = self.cell_objects.iter().position(|x| x.id == o) else {
+        let cell = self.cell();
+        let obj = if cell == self.known_cell {
+            let Some(i) = self.cell_objects.iter().position(|x| x.id == o) else {
+                return false;
+            };
+            self.cell_objects.remove(i)
+        } else if self.in_area(cell) {
+            let Some(i) = self.area.iter().position(|x| x.id == o && self.geom.registered_in(x.pos, x.radius, cell))
+            else {
+                return false;
+            };
+            self.area.remove(i)
+        } else {
             return false;
         };
-        let obj = self.cell_objects.remove(i);
         self.carrying.push(obj);
         self.ops.push(Op::Pick { object: o });
         true
@@ -191,10 +229,18 @@ impl View {
             DropOutcome::Floor => false,
         };
         let mut o = self.carrying.remove(slot);
+        if into_target {
+            self.delivered += o.weight;
+        }
         o.pos = self.pos;
         self.ops.push(Op::Drop { object: o.id });
-        if !into_target && self.cell() == self.known_cell {
-            self.cell_objects.push(o);
+        if !into_target {
+            let cell = self.cell();
+            if cell == self.known_cell {
+                self.cell_objects.push(o);
+            } else if self.in_area(cell) {
+                self.area.push(o);
+            }
         }
         true
     }

@@ -62,6 +62,8 @@ pub fn percepts() -> Vec<Percept> {
                 },
                 objects,
                 nearby_impassable,
+                reach: 0,
+                area: vec![],
                 agents,
             }
         })
@@ -71,6 +73,8 @@ pub fn percepts() -> Vec<Percept> {
             regime,
             objects: vec![],
             nearby_impassable: vec![],
+            reach: 0,
+            area: vec![],
             agents: vec![],
         }))
         .collect()
@@ -221,6 +225,7 @@ pub fn run_infos() -> Vec<RunInfo> {
         agents: 4,
         world_json: serde_json::to_string(&cfg.world).expect("encodes"),
         learner_json: serde_json::to_string(&LearnerConfig::default()).expect("encodes"),
+        program_json: serde_json::to_string(&geese_agent::Program::default()).expect("encodes"),
         grammar_text: grammars::builtin(&grammar_name).expect("shipped").to_string(),
         grammar_name,
         regime: Regime::default(),

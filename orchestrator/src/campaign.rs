@@ -14,7 +14,7 @@ use crate::config::{RunConfig, RunSpec};
 use crate::metrics::{self, EfficiencyVariant};
 use crate::output::text_digest;
 use crate::store::{Store, StoreError, TrialRecord, TrialResult};
-use crate::trial::{run_trial, TrialSummary};
+use crate::trial::{run_trial, Ran};
 use geese_proto::StepReport;
 use geese_world::Task;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -410,8 +410,32 @@ pub struct Interrupted;
 pub trait TrialRunner: Sync {
     /// Transport name recorded with every trial ("in-process", "zenoh", …).
     fn transport(&self) -> &str;
-    /// Run `spec` to the end, calling `observe` after every step, in step order.
-    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError>;
+    /// Run one stage `spec` to the end, calling `observe` after every step, in step
+    /// order; returns its summary and the population its agents ended with.
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<Ran, TrialError>;
+}
+
+/// Run `spec` and the stages that follow it ([`crate::config::FollowUp`]: a Multi-GEESE
+/// combine phase after its collect phase, the fixed test of a learned population);
+/// `observe` sees the last stage's steps, `stage_done` every stage with the population
+/// it ended with. Returns the last stage.
+pub fn run_stages(
+    runner: &dyn TrialRunner,
+    spec: &RunSpec,
+    observe: &mut dyn FnMut(&StepReport),
+    stage_done: &mut dyn FnMut(&RunSpec, &Ran, &geese_agent::Population),
+) -> Result<Ran, TrialError> {
+    let mut cur = spec.clone();
+    loop {
+        let last = cur.follow_up == crate::config::FollowUp::None;
+        let ran = if last { runner.run(&cur, observe)? } else { runner.run(&cur, &mut |_| {})? };
+        let pop = cur.population(ran.members.clone());
+        stage_done(&cur, &ran, &pop);
+        match cur.next_stage(&pop)? {
+            Some(next) => cur = next,
+            None => return Ok(ran),
+        }
+    }
 }
 
 /// Trials on the in-memory transport, in the calling thread.
@@ -421,7 +445,7 @@ impl TrialRunner for InProcess {
     fn transport(&self) -> &str {
         "in-process"
     }
-    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<Ran, TrialError> {
         Ok(run_trial(spec, observe)?)
     }
 }
@@ -562,12 +586,13 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> Option<Tria
     let mut series: Vec<f64> = Vec::with_capacity(steps as usize);
     let started = std::time::Instant::now();
     let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        runner.run(spec, &mut |rep: &StepReport| {
+        let mut observe = |rep: &StepReport| {
             series.push(rep.task_pct);
             if rep.step.is_multiple_of(stride) || rep.step == steps {
                 rows.push(rep.clone());
             }
-        })
+        };
+        run_stages(runner, spec, &mut observe, &mut |_, _, _| {}).map(|r| r.summary)
     }));
     let wall = started.elapsed().as_secs_f64();
     let error = match r {

@@ -4,6 +4,7 @@
 //! steps, IP 0.85, ST 7, GS 10. Unknown keys are errors that name the key (serde's
 //! `deny_unknown_fields`); out-of-range values are errors that name the field.
 use geese_agent::ge::Grammar;
+use geese_agent::program::{Algorithm, Phase, Population, Program, Strategy};
 use geese_agent::{grammars, LearnerConfig};
 use geese_proto::limits::{check_max, MAX_SCHEDULED, MAX_STEPS};
 use geese_proto::{Perturbation, Regime};
@@ -27,8 +28,24 @@ pub struct Scheduled {
 pub struct RunConfig {
     pub steps: u64,
     pub seed: u64,
-    /// Built-in grammar name or path to a `.bnf` file; default by task
-    /// (`betr-foraging-avoid` / `betr-nest-avoid`).
+    /// The learning algorithm: betr-geese, geese-bt or multi-geese (REFERENCE §6–7).
+    pub algorithm: Algorithm,
+    /// Multi-GEESE: run this phase alone; unset runs collect, then combine (each for
+    /// `steps` steps).
+    pub phase: Option<Phase>,
+    /// A combine phase run alone starts from this collect population (its GeneDicts).
+    pub collect_population: Option<PathBuf>,
+    /// Run this fixed population (no evolution, no lateral transfer).
+    pub population: Option<PathBuf>,
+    /// Fraction of the population's best members a fixed run uses. Without
+    /// `population`, the run learns and then tests its own population so sampled, in
+    /// the fixed-agent world (paper layout, agents at the hub), for `steps` steps.
+    pub sample: Option<f64>,
+    /// How a fixed population is handed out (parallel or top-agents); default: the
+    /// file's, else parallel for BeTr-GEESE and top-agents otherwise (REFERENCE §8.5).
+    pub strategy: Option<Strategy>,
+    /// Built-in grammar name or path to a `.bnf` file; default by algorithm, phase and
+    /// task (`betr-foraging-avoid`, `geese-bt-nest`, `multi-combine-foraging`, …).
     pub grammar: Option<String>,
     /// Interaction probability IP.
     pub ip: f64,
@@ -47,6 +64,12 @@ impl Default for RunConfig {
         RunConfig {
             steps: 12_000,
             seed: 1,
+            algorithm: Algorithm::BetrGeese,
+            phase: None,
+            collect_population: None,
+            population: None,
+            sample: None,
+            strategy: None,
             grammar: None,
             ip: 0.85,
             lateral_transfer: true,
@@ -69,6 +92,17 @@ pub enum ConfigError {
     Invalid { field: String, reason: String },
     #[error("grammar {name}: {message}")]
     Grammar { name: String, message: String },
+    #[error("population {path}: {message}")]
+    Population { path: String, message: String },
+}
+
+/// What runs after a stage of a run (a Multi-GEESE combine phase, or the fixed test of
+/// the population a learning run ended with).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FollowUp {
+    None,
+    Combine,
+    FixedTest,
 }
 
 fn invalid(field: &str, reason: impl Into<String>) -> ConfigError {
@@ -85,6 +119,12 @@ pub struct RunSpec {
     pub grammar_text: Arc<str>,
     pub grammar: Arc<Grammar>,
     pub learner: Arc<LearnerConfig>,
+    /// What the agents run in this stage.
+    pub program: Arc<Program>,
+    /// What runs after this stage.
+    pub follow_up: FollowUp,
+    /// Which stage this is: `collect`, `combine`, `learn` or `fixed`.
+    pub stage: &'static str,
 }
 
 impl RunConfig {
@@ -100,10 +140,11 @@ impl RunConfig {
 
     /// The grammar name this run uses.
     pub fn grammar_name(&self) -> String {
-        self.grammar.clone().unwrap_or_else(|| match self.world.task {
-            Task::Foraging => "betr-foraging-avoid".into(),
-            Task::Nest => "betr-nest-avoid".into(),
-        })
+        let phase = match (self.algorithm, self.phase) {
+            (Algorithm::MultiGeese, None) => Some(Phase::Collect),
+            (_, p) => p,
+        };
+        self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, task_name(self.world.task)))
     }
 
     /// The initial regime (IP, lateral transfer, loss).
@@ -146,11 +187,179 @@ impl RunConfig {
             check_max("at", p.at, MAX_STEPS).map_err(|e| invalid(&format!("perturbations[{i}].at"), e.to_string()))?;
             p.change.validate(&geom).map_err(|e| invalid(&format!("perturbations[{i}].change"), e.to_string()))?;
         }
+        if let Some(s) = self.sample {
+            if !(s > 0.0 && s <= 1.0) {
+                return Err(invalid("sample", format!("{s} is not in (0, 1]")));
+            }
+        }
+        if self.phase.is_some() && self.algorithm != Algorithm::MultiGeese {
+            return Err(invalid("phase", format!("phases belong to multi-geese, not {}", self.algorithm)));
+        }
+        if self.collect_population.is_some() && self.phase != Some(Phase::Combine) {
+            return Err(invalid("collect_population", "is read only by phase = \"combine\""));
+        }
+        if self.population.is_some() && self.phase.is_some() {
+            return Err(invalid("population", "a fixed population has no phase: leave `phase` unset"));
+        }
+        if let Some(path) = self.population.clone() {
+            let pop = read_population(&path)?;
+            return self.fixed(&pop, &path.display().to_string());
+        }
+        let program = match (self.algorithm, self.phase) {
+            (Algorithm::MultiGeese, Some(Phase::Combine)) => {
+                let Some(path) = self.collect_population.clone() else {
+                    return Err(invalid(
+                        "collect_population",
+                        "phase = \"combine\" starts from a collect population: give its population.json",
+                    ));
+                };
+                let pop = read_population(&path)?;
+                let dicts = pop.gene_dicts(self.world.agents).map_err(|e| ConfigError::Population {
+                    path: path.display().to_string(),
+                    message: e.to_string(),
+                })?;
+                Program::Learn { algorithm: Algorithm::MultiGeese, phase: Some(Phase::Combine), gene_dicts: dicts }
+            }
+            (Algorithm::MultiGeese, None) => Program::learn(Algorithm::MultiGeese, Some(Phase::Collect)),
+            (a, p) => Program::learn(a, p),
+        };
+        let follow_up = match (self.algorithm, self.phase, self.sample) {
+            (Algorithm::MultiGeese, None, _) => FollowUp::Combine,
+            (_, _, Some(_)) => FollowUp::FixedTest,
+            _ => FollowUp::None,
+        };
+        let stage = match (self.algorithm, self.phase) {
+            (Algorithm::MultiGeese, Some(Phase::Combine)) => "combine",
+            (Algorithm::MultiGeese, _) => "collect",
+            _ => "learn",
+        };
+        self.finish(program, follow_up, stage)
+    }
+
+    /// The spec of a validated config running `program`.
+    fn finish(mut self, program: Program, follow_up: FollowUp, stage: &'static str) -> Result<RunSpec, ConfigError> {
+        if self.world.percept_reach.is_none() {
+            // Trees that may move and then sense, pick up or drop within one tick need
+            // the cells around the agent's (BeTr-GEESE trees hold one action).
+            let several_actions = match &program {
+                Program::Fixed { .. } => true,
+                Program::Learn { algorithm, phase, .. } => {
+                    *algorithm == Algorithm::GeeseBt || *phase == Some(Phase::Combine)
+                }
+            };
+            self.world.percept_reach = Some(u32::from(several_actions));
+        }
         let name = self.grammar_name();
         let (grammar, text) = load_grammar(&name)?;
+        program.prepare(task_name(self.world.task)).map_err(|e| ConfigError::Population {
+            path: format!("of the {} run", self.algorithm),
+            message: e.to_string(),
+        })?;
         let learner = Arc::new(self.learner.clone());
-        Ok(RunSpec { config: self, grammar_name: name, grammar_text: text.into(), grammar: Arc::new(grammar), learner })
+        Ok(RunSpec {
+            config: self,
+            grammar_name: name,
+            grammar_text: text.into(),
+            grammar: Arc::new(grammar),
+            learner,
+            program: Arc::new(program),
+            follow_up,
+            stage,
+        })
     }
+
+    /// The fixed run of population `pop` (read from `path`) under this config.
+    fn fixed(mut self, pop: &Population, path: &str) -> Result<RunSpec, ConfigError> {
+        let perr = |message: String| ConfigError::Population { path: path.into(), message };
+        if self.grammar.is_none() {
+            self.grammar = Some(pop.grammar.clone());
+        }
+        let name = self.grammar_name();
+        let (_, text) = load_grammar(&name)?;
+        pop.check_against(&name, &text, task_name(self.world.task)).map_err(perr)?;
+        if let Some(i) =
+            self.perturbations.iter().position(|p| p.change == geese_proto::Perturbation::SetLateralTransfer(true))
+        {
+            return Err(invalid(
+                &format!("perturbations[{i}]"),
+                "a fixed population has no lateral transfer to switch on",
+            ));
+        }
+        let algorithm = pop.algorithm.unwrap_or(self.algorithm);
+        let strategy = self.strategy.or(pop.strategy).unwrap_or(algorithm.default_strategy());
+        let members = pop.select(self.sample.unwrap_or(1.0), strategy).map_err(|e| perr(e.to_string()))?;
+        self.lateral_transfer = false;
+        let program = Program::Fixed { strategy, members };
+        program.prepare(task_name(self.world.task)).map_err(|e| perr(e.to_string()))?;
+        self.finish(program, FollowUp::None, "fixed")
+    }
+}
+
+impl RunSpec {
+    /// The population this stage's agents ended with (`members` as the runner returned
+    /// them), best first.
+    pub fn population(&self, mut members: Vec<geese_agent::program::Member>) -> Population {
+        members
+            .sort_by(|a, b| geese_agent::ge::fitness_cmp(b.fitness.unwrap_or(f64::NAN), a.fitness.unwrap_or(f64::NAN)));
+        let c = &self.config;
+        let phase = match &*self.program {
+            Program::Learn { phase, .. } => *phase,
+            Program::Fixed { .. } => None,
+        };
+        Population {
+            grammar: self.grammar_name.clone(),
+            strategy: Some(c.strategy.unwrap_or(c.algorithm.default_strategy())),
+            algorithm: Some(c.algorithm),
+            phase,
+            task: Some(task_name(c.world.task).into()),
+            members,
+        }
+    }
+
+    /// The stage after this one, given the population this one ended with.
+    pub fn next_stage(&self, pop: &Population) -> Result<Option<RunSpec>, ConfigError> {
+        let mut c = self.config.clone();
+        match self.follow_up {
+            FollowUp::None => Ok(None),
+            FollowUp::Combine => {
+                c.phase = Some(Phase::Combine);
+                c.grammar = None;
+                let dicts = pop.gene_dicts(c.world.agents).map_err(|e| ConfigError::Population {
+                    path: "of the collect phase".into(),
+                    message: e.to_string(),
+                })?;
+                let follow_up = if c.sample.is_some() { FollowUp::FixedTest } else { FollowUp::None };
+                let program =
+                    Program::Learn { algorithm: Algorithm::MultiGeese, phase: Some(Phase::Combine), gene_dicts: dicts };
+                c.finish(program, follow_up, "combine").map(Some)
+            }
+            FollowUp::FixedTest => {
+                // The fixed-agent world of REFERENCE §1.4: paper layout, agents at the hub.
+                c.world.layout = geese_world::Layout::Paper;
+                c.world.start = None;
+                c.phase = None;
+                c.grammar = Some(self.grammar_name.clone());
+                let from = format!("learned by the {} run", c.algorithm);
+                c.fixed(pop, &from).map(Some)
+            }
+        }
+    }
+}
+
+/// `foraging` or `nest`.
+pub fn task_name(t: Task) -> &'static str {
+    match t {
+        Task::Foraging => "foraging",
+        Task::Nest => "nest",
+    }
+}
+
+/// Read a population file.
+pub fn read_population(path: &Path) -> Result<Population, ConfigError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| ConfigError::Population { path: path.display().to_string(), message: e.to_string() })?;
+    Population::from_json(&text)
+        .map_err(|message| ConfigError::Population { path: path.display().to_string(), message })
 }
 
 /// Load a grammar by built-in name or file path; returns it with its text.

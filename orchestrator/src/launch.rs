@@ -134,6 +134,8 @@ pub struct Swarm {
     pub agents: Vec<AgentProc>,
     /// Every PID spawned, in order (world first).
     spawned: Vec<u32>,
+    /// Where agent process i writes its agents' population at the end.
+    population_files: Vec<PathBuf>,
 }
 
 impl Swarm {
@@ -150,6 +152,9 @@ impl Swarm {
         if let Some(s) = &self.subscribe {
             let modes: Vec<&str> = s.split(',').collect();
             c.args(["--subscribe", modes[i % modes.len()]]);
+        }
+        if let Some(p) = self.population_files.get(i) {
+            c.arg("--population-out").arg(p);
         }
         c.stdin(Stdio::null()).stdout(Stdio::null());
         c.stderr(if self.quiet { Stdio::null() } else { Stdio::inherit() });
@@ -216,6 +221,22 @@ impl Swarm {
         self.world_pid.and_then(rss_kib)
     }
 
+    /// Read (and remove) the population files the agent processes wrote at their end.
+    fn take_population(&mut self) -> Vec<geese_agent::program::Member> {
+        let mut members = Vec::new();
+        for p in std::mem::take(&mut self.population_files) {
+            match std::fs::read(&p).map_err(|e| e.to_string()).and_then(|b| {
+                serde_json::from_slice::<Vec<geese_agent::program::Member>>(&b).map_err(|e| e.to_string())
+            }) {
+                Ok(m) => members.extend(m),
+                Err(e) => tracing::warn!("agent process population {}: {e}", p.display()),
+            }
+            let _ = std::fs::remove_file(&p);
+        }
+        members.sort_by_key(|m| m.agent);
+        members
+    }
+
     async fn shutdown(&mut self, grace: Duration) {
         let deadline = Instant::now() + grace;
         let mut all: Vec<&mut Child> =
@@ -258,6 +279,9 @@ pub struct NetOutcome {
     /// Perturbations sent on the control plane during the run (`geese control`), in
     /// arrival order, for the manifest.
     pub control_log: Vec<Control>,
+    /// The population the agents ended with (one member per agent whose process wrote
+    /// it), in agent order.
+    pub members: Vec<geese_agent::program::Member>,
 }
 
 /// Where the binaries are: `bin_dir`, else `$GEESE_BIN_DIR`, else next to this
@@ -308,10 +332,10 @@ impl crate::campaign::TrialRunner for OverZenoh {
         &self,
         spec: &RunSpec,
         observe: &mut dyn FnMut(&geese_proto::StepReport),
-    ) -> Result<TrialSummary, crate::campaign::TrialError> {
+    ) -> Result<crate::trial::Ran, crate::campaign::TrialError> {
         let opts = NetOptions { run: None, ..self.opts.clone() };
         match run_net(spec, &opts, |r, _| observe(&r.report)) {
-            Ok(out) if out.completed => Ok(out.summary),
+            Ok(out) if out.completed => Ok(crate::trial::Ran { summary: out.summary, members: out.members }),
             Ok(out) => Err(format!("the world stopped after {} of {} steps", out.reports, spec.config.steps).into()),
             // Ctrl-C ends the campaign; it is no failure of the trial (the children are
             // gone by now).
@@ -337,6 +361,7 @@ pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSp
         agents: c.world.agents,
         world_json: json(serde_json::to_string(&c.world))?,
         learner_json: json(serde_json::to_string(&*spec.learner))?,
+        program_json: json(serde_json::to_string(&*spec.program))?,
         grammar_name: spec.grammar_name.clone(),
         grammar_text: spec.grammar_text.to_string(),
         regime: c.regime(),
@@ -488,12 +513,17 @@ async fn run_net_async(
         world: Some(world),
         agents: Vec::new(),
         spawned: world_pid.into_iter().collect(),
+        population_files: Vec::new(),
     };
     if opts.processes > 0 {
         let mut first = 0;
         while first < n {
             let count = per.min(n - first);
             swarm.agents.push(AgentProc { first, count, child: None, pid: None, killed: false });
+            if !opts.bare {
+                let i = swarm.population_files.len();
+                swarm.population_files.push(std::env::temp_dir().join(format!("geese-{run}-population-{i}.json")));
+            }
             first += count;
         }
         for i in 0..swarm.agents.len() {
@@ -599,6 +629,7 @@ async fn run_net_async(
     swarm.shutdown(Duration::from_secs(if outcome.is_ok() { 15 } else { 5 })).await;
     let _ = session.close().await;
     outcome?;
+    let members = swarm.take_population();
     summary.wall_seconds = launched.elapsed().as_secs_f64();
     Ok(NetOutcome {
         wall_seconds: summary.wall_seconds,
@@ -611,6 +642,7 @@ async fn run_net_async(
         processes,
         agents_per_process: per,
         control_log: control_log.lock().map(|l| l.clone()).unwrap_or_default(),
+        members,
     })
 }
 

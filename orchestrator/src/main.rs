@@ -7,7 +7,8 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use geese_agent::bt::Bt;
 use geese_agent::ge::{self, GeParams};
 use geese_agent::FitnessVariant;
-use geese_orchestrator::config::{load_grammar, RunConfig};
+use geese_agent::Program;
+use geese_orchestrator::config::{load_grammar, FollowUp, RunConfig};
 use geese_orchestrator::output::{write_manifest, StepCsv};
 use geese_orchestrator::{bench, Trial};
 use geese_world::{Layout, Task};
@@ -92,9 +93,34 @@ struct RunArgs {
     /// Grid size GS (must divide half the arena).
     #[arg(long)]
     gs: Option<i32>,
-    /// Built-in grammar name or .bnf file.
+    /// Built-in grammar name or .bnf file (default: the algorithm's, for the task).
     #[arg(long)]
     grammar: Option<String>,
+    /// Learning algorithm: betr-geese, geese-bt or multi-geese.
+    #[arg(long)]
+    algorithm: Option<geese_agent::Algorithm>,
+    /// Multi-GEESE: run one phase alone (collect, or combine with --collect-population).
+    #[arg(long)]
+    phase: Option<geese_agent::Phase>,
+    /// The collect population.json a combine phase starts from.
+    #[arg(long)]
+    collect_population: Option<PathBuf>,
+    /// Run this fixed population (population.json) instead of learning.
+    #[arg(long)]
+    population: Option<PathBuf>,
+    /// Fraction of the population's best members to run (fixed runs; with no
+    /// --population, learn first and then test the learned population).
+    #[arg(long)]
+    sample: Option<f64>,
+    /// How a fixed population is handed out: parallel or top-agents.
+    #[arg(long)]
+    strategy: Option<geese_agent::Strategy>,
+    /// Fitness terms summed by the learners, e.g. E+B or D+E+C+F (default: the
+    /// algorithm's own).
+    #[arg(long)]
+    terms: Option<geese_agent::FitnessTerms>,
+    /// World layout (default reference; a fixed --population without --config runs
+    /// in the paper's fixed-agent world).
     #[arg(long, value_enum)]
     layout: Option<LayoutArg>,
     #[arg(long, value_enum)]
@@ -145,6 +171,31 @@ impl RunArgs {
         }
         if let Some(v) = &self.grammar {
             c.grammar = Some(v.clone());
+        }
+        if let Some(v) = self.algorithm {
+            c.algorithm = v;
+        }
+        if let Some(v) = self.phase {
+            c.phase = Some(v);
+        }
+        if let Some(v) = &self.collect_population {
+            c.collect_population = Some(v.clone());
+        }
+        if let Some(v) = &self.population {
+            c.population = Some(v.clone());
+            if self.config.is_none() && self.layout.is_none() {
+                // The fixed-agent world of REFERENCE §1.4 (agents start at the hub).
+                c.world.layout = Layout::Paper;
+            }
+        }
+        if let Some(v) = self.sample {
+            c.sample = Some(v);
+        }
+        if let Some(v) = self.strategy {
+            c.strategy = Some(v);
+        }
+        if let Some(v) = self.terms {
+            c.learner.terms = Some(v);
         }
         if let Some(l) = self.layout {
             c.world.layout = match l {
@@ -277,26 +328,66 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
 fn run_cmd(a: RunArgs) -> Result<()> {
     let cfg = a.net.apply(a.resolve()?);
     let net = a.net.options()?;
-    let spec = cfg.validate()?;
+    let mut spec = cfg.validate()?;
     let c = &spec.config;
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}-seed{}", c.world.task, c.seed)));
-    std::fs::create_dir_all(&out).with_context(|| format!("cannot create output directory {}", out.display()))?;
-    if let Some(opts) = net {
-        return net_run_cmd(&spec, &opts, &out, a.quiet);
+    // Stage by stage: a Multi-GEESE collect phase before its combine phase, a learning
+    // run before the fixed test of its population. The last stage writes into `out`,
+    // earlier ones into `out/<stage>`.
+    loop {
+        let dir = if spec.follow_up == FollowUp::None { out.clone() } else { out.join(spec.stage) };
+        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create output directory {}", dir.display()))?;
+        let members = match &net {
+            Some(opts) => net_run_cmd(&spec, opts, &dir, a.quiet)?,
+            None => in_process_run(&spec, &dir, a.quiet)?,
+        };
+        let pop = spec.population(members);
+        if !spec.program.is_fixed() {
+            let path = dir.join("population.json");
+            std::fs::write(&path, serde_json::to_vec_pretty(&pop)?)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            println!("population: {} ({} members)", path.display(), pop.members.len());
+        }
+        match spec.next_stage(&pop)? {
+            Some(next) => spec = next,
+            None => return Ok(()),
+        }
     }
+}
+
+/// The line every run prints first.
+fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
+    let c = &spec.config;
+    let what = match &*spec.program {
+        Program::Fixed { strategy, members } => {
+            format!("fixed population of {} members ({strategy:?})", members.len())
+        }
+        Program::Learn { algorithm, phase: Some(p), .. } => format!("{algorithm} ({p} phase)"),
+        Program::Learn { algorithm, .. } => algorithm.to_string(),
+    };
+    format!(
+        "geese run: {what}, {} agents{transport}, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
+        c.world.agents, c.steps, c.world.task, spec.grammar_name, c.ip, c.learner.st, c.world.grid, c.seed
+    )
+}
+
+/// One stage in this process; returns the population its agents ended with.
+fn in_process_run(
+    spec: &geese_orchestrator::RunSpec,
+    out: &std::path::Path,
+    quiet: bool,
+) -> Result<Vec<geese_agent::program::Member>> {
+    let c = &spec.config;
     let csv_path = out.join("steps.csv");
     let mut csv = StepCsv::create(&csv_path).with_context(|| format!("cannot write {}", csv_path.display()))?;
-    eprintln!(
-        "geese run: {} agents, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
-        c.world.agents, c.steps, c.world.task, spec.grammar_name, c.ip, c.learner.st, c.world.grid, c.seed
-    );
-    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(c.steps) };
+    eprintln!("{}", describe(spec, ""));
+    let bar = if quiet { ProgressBar::hidden() } else { ProgressBar::new(c.steps) };
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} steps  task {msg}  [{elapsed} < {eta}]")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let start = std::time::Instant::now();
-    let mut trial = Trial::new(&spec)?;
+    let mut trial = Trial::new(spec)?;
     for _ in 0..c.steps {
         let rep = trial.step();
         csv.write(&rep)?;
@@ -309,7 +400,7 @@ fn run_cmd(a: RunArgs) -> Result<()> {
     csv.finish()?;
     let mut summary = trial.summary().clone();
     summary.wall_seconds = start.elapsed().as_secs_f64();
-    write_manifest(&out, &spec, "in-process", &summary, &[])?;
+    write_manifest(out, spec, "in-process", &summary, &[])?;
     println!("final task %: {:.2}", summary.final_task_pct);
     match summary.first_step_at_threshold {
         Some(s) => println!("reached {} % at step {s}", c.threshold),
@@ -317,21 +408,18 @@ fn run_cmd(a: RunArgs) -> Result<()> {
     }
     println!("wall time: {:.2} s", summary.wall_seconds);
     println!("results: {} and {}", csv_path.display(), out.join("manifest.json").display());
-    Ok(())
+    Ok(trial.members())
 }
 
-/// `geese run --processes N`: the same run as separate processes over Zenoh.
+/// `geese run --processes N`: the same stage as separate processes over Zenoh.
 fn net_run_cmd(
     spec: &geese_orchestrator::RunSpec,
     opts: &geese_orchestrator::launch::NetOptions,
     out: &std::path::Path,
     quiet: bool,
-) -> Result<()> {
+) -> Result<Vec<geese_agent::program::Member>> {
     let c = &spec.config;
-    eprintln!(
-        "geese run: {} agents in {} agent processes over Zenoh, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
-        c.world.agents, opts.processes, c.steps, c.world.task, spec.grammar_name, c.ip, c.learner.st, c.world.grid, c.seed
-    );
+    eprintln!("{}", describe(spec, &format!(" in {} agent processes over Zenoh", opts.processes)));
     let o = geese_orchestrator::launch::run_cli(spec, opts, out, quiet)?;
     let s = &o.summary;
     if !o.completed {
@@ -353,7 +441,7 @@ fn net_run_cmd(
         out.join("net.csv").display(),
         out.join("manifest.json").display()
     );
-    Ok(())
+    Ok(o.members)
 }
 
 fn bench_cmd(a: BenchArgs) -> Result<()> {

@@ -4,7 +4,8 @@
 //! go to the cell of each live agent, genes to the cell they were published on, intents
 //! to the world, which resolves them in agent-id order. The distributed runtime drives the
 //! very same [`World`] and [`Learner`] code, which is why the two agree step for step.
-use crate::config::RunSpec;
+use crate::config::{task_name, RunSpec};
+use geese_agent::program::Member;
 use geese_agent::{GeneCache, Learner};
 use geese_proto::membus::Mailboxes;
 use geese_proto::{GeneMsg, Intent, StepReport};
@@ -57,6 +58,23 @@ impl TrialSummary {
     }
 }
 
+/// Why a trial cannot start.
+#[derive(Debug, thiserror::Error)]
+pub enum SetupError {
+    #[error(transparent)]
+    World(#[from] geese_world::ConfigError),
+    #[error("agents: {0}")]
+    Agents(String),
+}
+
+/// A finished stage of a run: its summary and the population its agents ended with.
+#[derive(Clone, Debug)]
+pub struct Ran {
+    pub summary: TrialSummary,
+    /// One member per agent, in agent order.
+    pub members: Vec<Member>,
+}
+
 /// A world and its learners, stepped in lock-step.
 pub struct Trial {
     pub world: World,
@@ -70,7 +88,7 @@ pub struct Trial {
 
 impl Trial {
     /// Build the world and agents of `spec`.
-    pub fn new(spec: &RunSpec) -> Result<Trial, geese_world::ConfigError> {
+    pub fn new(spec: &RunSpec) -> Result<Trial, SetupError> {
         let cfg = &spec.config;
         let mut world = World::new(cfg.world.clone(), cfg.seed)?;
         world.set_regime(cfg.regime());
@@ -79,9 +97,15 @@ impl Trial {
         }
         let geom = world.geometry();
         let hub = world.hub();
+        let prepared =
+            spec.program.prepare(task_name(cfg.world.task)).map_err(|e| SetupError::Agents(e.to_string()))?;
         let agents = (0..cfg.world.agents)
-            .map(|id| Learner::new(id, spec.learner.clone(), spec.grammar.clone(), geom, hub, cfg.seed))
-            .collect();
+            .map(|id| {
+                let role = prepared.role(id, cfg.seed);
+                Learner::with_role(id, spec.learner.clone(), spec.grammar.clone(), geom, hub, cfg.seed, role)
+                    .map_err(|e| SetupError::Agents(format!("agent {id}: {e}")))
+            })
+            .collect::<Result<_, _>>()?;
         Ok(Trial {
             genes: Mailboxes::new(geom.cell_count()),
             intents: vec![None; cfg.world.agents as usize],
@@ -134,20 +158,22 @@ impl Trial {
     pub fn summary(&self) -> &TrialSummary {
         &self.summary
     }
+
+    /// Every agent as a population member, in agent order.
+    pub fn members(&self) -> Vec<Member> {
+        self.agents.iter().map(Learner::member).collect()
+    }
 }
 
 /// Run a whole trial, calling `observe` after every step.
-pub fn run_trial(
-    spec: &RunSpec,
-    mut observe: impl FnMut(&StepReport),
-) -> Result<TrialSummary, geese_world::ConfigError> {
+pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result<Ran, SetupError> {
     let start = std::time::Instant::now();
     let mut t = Trial::new(spec)?;
     for _ in 0..spec.config.steps {
         let rep = t.step();
         observe(&rep);
     }
-    let mut s = t.summary.clone();
-    s.wall_seconds = start.elapsed().as_secs_f64();
-    Ok(s)
+    let mut summary = t.summary.clone();
+    summary.wall_seconds = start.elapsed().as_secs_f64();
+    Ok(Ran { summary, members: t.members() })
 }

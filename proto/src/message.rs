@@ -129,6 +129,13 @@ pub struct Percept {
     pub nearby_impassable: Vec<ObjectInfo>,
     /// Agents registered in this cell, in id order.
     pub agents: Vec<AgentPublic>,
+    /// Cells around this one whose objects the percept also carries (`area`): 0 for
+    /// runs whose trees act once a tick, more where an agent may move and then sense,
+    /// pick up or drop in the same tick (several actions in one tree).
+    pub reach: u8,
+    /// Non-agent objects registered in the cells within `reach` of this one and not in
+    /// it (each once, cell by cell in row-major order, registration order within).
+    pub area: Vec<ObjectInfo>,
 }
 
 /// An agent's current gene, offered to its cell-mates for lateral transfer.

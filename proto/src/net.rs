@@ -88,6 +88,9 @@ pub struct NetRunSpec {
     pub agents: u32,
     pub world_json: String,
     pub learner_json: String,
+    /// What the agents run (`geese_agent::program::Program`, JSON): the algorithm and
+    /// phase, a combine phase's GeneDicts, or a fixed population's members.
+    pub program_json: String,
     pub grammar_name: String,
     pub grammar_text: String,
     /// The regime in force at step 1 (IP, lateral transfer, gene loss).

@@ -81,6 +81,12 @@ pub struct WorldConfig {
     pub obstacle_radius: i32,
     /// Start positions; `None` = the layout's default (random / hub).
     pub start: Option<Start>,
+    /// Cells around an agent's cell whose objects its percept carries, so that an agent
+    /// whose tree moves and then senses, picks up or drops within one tick sees the
+    /// cell it moved into (REFERENCE §1.8: the reference code's agents act on the live
+    /// world). `None`: decided by the run (0 when every tree acts once a tick, 1
+    /// otherwise); at most 3.
+    pub percept_reach: Option<u32>,
 }
 
 impl Default for WorldConfig {
@@ -101,6 +107,7 @@ impl Default for WorldConfig {
             obstacles: 0,
             obstacle_radius: 10,
             start: None,
+            percept_reach: None,
         }
     }
 }
@@ -160,6 +167,9 @@ impl WorldConfig {
         }
         if self.obstacles > 100 {
             return Err(bad("obstacles", format!("{} exceeds 100 initial obstacles", self.obstacles)));
+        }
+        if self.percept_reach.is_some_and(|r| r > 3) {
+            return Err(bad("percept_reach", format!("{} exceeds 3 cells", self.percept_reach.unwrap_or(0))));
         }
         if geom.half_w().min(geom.half_h()) <= 25 && self.obstacles > 0 {
             return Err(bad("obstacles", "the obstacle rule needs an arena wider than 50"));

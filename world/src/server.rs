@@ -596,6 +596,7 @@ mod tests {
             agents,
             world_json: serde_json::to_string(&world).unwrap(),
             learner_json: String::new(),
+            program_json: String::new(),
             grammar_name: String::new(),
             grammar_text: String::new(),
             regime: Regime::default(),

@@ -251,7 +251,34 @@ impl World {
             }
         }
         let agents = here.agents.iter().map(|&id| self.public(id)).collect();
-        Percept { step: self.step, cell, regime: self.regime, objects, nearby_impassable, agents }
+        let reach = self.cfg.percept_reach.unwrap_or(0).min(u8::MAX as u32) as u8;
+        let area = if reach == 0 { Vec::new() } else { self.area(cell, i32::from(reach), &objects) };
+        Percept { step: self.step, cell, regime: self.regime, objects, nearby_impassable, agents, reach, area }
+    }
+
+    /// Non-agent objects registered within `reach` cells of `cell` but not in `own`
+    /// (the cell's objects), each once.
+    fn area(&self, cell: CellIdx, reach: i32, own: &[ObjectInfo]) -> Vec<ObjectInfo> {
+        let (c0, r0) = self.geom.cell_col_row(cell);
+        let mut seen = vec![false; self.objects.len()];
+        for o in own {
+            seen[o.id as usize] = true;
+        }
+        let mut area = Vec::new();
+        for r in (r0 - reach).max(0)..=(r0 + reach).min(self.geom.rows() - 1) {
+            for c in (c0 - reach).max(0)..=(c0 + reach).min(self.geom.cols() - 1) {
+                let idx = (r * self.geom.cols() + c) as CellIdx;
+                if idx == cell {
+                    continue;
+                }
+                for o in self.objects_in(idx) {
+                    if !std::mem::replace(&mut seen[o.id as usize], true) {
+                        area.push(*o);
+                    }
+                }
+            }
+        }
+        area
     }
 
     fn public(&self, id: AgentId) -> AgentPublic {

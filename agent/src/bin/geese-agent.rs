@@ -11,7 +11,7 @@
 //! are) from the world's `ctl/info` queryable, so agents on another host need nothing
 //! but `--run` and a way to reach the router. It exits when the world's liveliness
 //! token disappears, on the control plane's stop, or on SIGINT/SIGTERM.
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use clap::{Parser, ValueEnum};
 use geese_agent::host::{Host, Input, Next, Out};
 use geese_proto::keys::{self, AgentRange, Parsed};
@@ -62,6 +62,9 @@ struct Args {
     /// Run the agents on a runtime of their own rather than on Zenoh's (diagnosis).
     #[arg(long)]
     separate_runtime: bool,
+    /// At the end, write this process's agents as population members (JSON) here.
+    #[arg(long)]
+    population_out: Option<std::path::PathBuf>,
 }
 
 /// What the callbacks queue for the loop, as received.
@@ -186,9 +189,15 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         Some(session.liveliness().declare_token(keys::cells_presence(&run, range)).await.map_err(zerr)?)
     };
     let token = session.liveliness().declare_token(keys::agents_presence(&run, range)).await.map_err(zerr)?;
+    let population_out = args.population_out.clone();
     let work = async move {
         let r = shell.drive(&mut host, &mut rx).await;
         host.report_phases();
+        if let Some(path) = population_out {
+            let members = host.members();
+            let bytes = serde_json::to_vec(&members)?;
+            std::fs::write(&path, bytes).with_context(|| format!("cannot write {}", path.display()))?;
+        }
         r
     };
     // Run the agents on Zenoh's own (single-threaded, see LEAN_ZENOH_RUNTIME) runtime:

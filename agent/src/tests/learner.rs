@@ -9,7 +9,8 @@
 use super::{geom, HUB, ME, SEED};
 use crate::ge::{self, GeParams, Grammar};
 use crate::grammars;
-use crate::learner::{FitnessVariant, GeneCache, Learner, LearnerConfig};
+use crate::learner::{FitnessVariant, GeneCache, Learner, LearnerConfig, Triggers};
+use crate::program::{self, FitnessTerms, GeneDict, Role, StoredGene};
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::{
     AgentId, AgentPublic, GeneMapping, GeneMsg, GeneticTrigger, Intent, ObjectInfo, ObjectKind, Percept, Pos, Regime,
@@ -82,12 +83,16 @@ struct Rig {
 
 impl Rig {
     fn new(phenotype: &str, cfg: LearnerConfig) -> Rig {
+        Rig::with_role(phenotype, cfg, Role::BetrGeese)
+    }
+
+    fn with_role(phenotype: &str, cfg: LearnerConfig, role: Role) -> Rig {
         cfg.validate().expect("valid learner config");
         let grammar = grammar_of(phenotype);
         let mate = ge::evaluate(&grammar, vec![3u32, 4], &cfg.ge);
         assert!(mate.valid());
         let mate_mapping = GeneMapping { valid: true, used_codons: mate.used_codons as u32, depth: mate.depth as u32 };
-        let learner = Learner::new(ME, Arc::new(cfg), grammar, geom(), HUB, SEED);
+        let learner = Learner::with_role(ME, Arc::new(cfg), grammar, geom(), HUB, SEED, role).expect("tree builds");
         Rig { learner, cache: GeneCache::new(), mate_genome: mate.genome, mate_mapping, t: 0, offered: None }
     }
 
@@ -108,10 +113,12 @@ impl Rig {
             regime: s.regime,
             objects,
             nearby_impassable: vec![],
+            reach: 0,
+            area: vec![],
             agents,
         };
         self.offered = self.learner.begin_step(&percept);
-        assert_eq!(self.offered.is_some(), s.regime.lateral_transfer);
+        assert_eq!(self.offered.is_some(), s.regime.lateral_transfer && !self.learner.is_fixed());
         let genes: Vec<GeneMsg> = s
             .mates
             .iter()
@@ -442,7 +449,7 @@ fn start_up_uses_the_first_of_three_individuals() {
     for id in 0..40 {
         let mut rng = ChaCha8Rng::seed_from_u64(derive(SEED, Owner::Agent(id), Purpose::Evolution));
         let three: Vec<_> = (0..3).map(|_| ge::random_individual(&grammar, &GeParams::default(), &mut rng)).collect();
-        let l = Learner::new(id, cfg.clone(), grammar.clone(), geom(), HUB, SEED);
+        let l = Learner::new(id, cfg.clone(), grammar.clone(), geom(), HUB, SEED).expect("tree builds");
         assert_eq!(l.gene().genome, three[0].genome, "agent {id}");
         assert_eq!(l.fitness(), 0.0);
         if three[1..].iter().any(|o| o.fitness > three[0].fitness) {
@@ -450,4 +457,114 @@ fn start_up_uses_the_first_of_three_individuals() {
         }
     }
     assert!(first_not_best > 0, "some agent's first individual is not its best");
+}
+
+// ---------------------------------------------------------------------------------------
+// §6.7 GEESE-BT, §7 Multi-GEESE, §6.8/§7.3 fixed agents
+// ---------------------------------------------------------------------------------------
+
+/// Drops food at the hub when it carries some; B = 0 (no selector).
+const DROP: &str = "[Sequence][Sequence][Act]CompositeDrop_Food[/Act][/Sequence][/Sequence]";
+
+fn geese_bt() -> LearnerConfig {
+    LearnerConfig { terms: Some(FitnessTerms::GEESE_BT), triggers: Some(Triggers::GeeseBt), ..cfg_st(4) }
+}
+
+/// §6.7: GEESE-BT's fitness is 0.1·R + E + C + F: C the weight carried now (type III),
+/// F the weight this gene delivered to the hub (type IV); no BT feedback.
+#[test]
+fn geese_bt_fitness_counts_carried_and_delivered_weight() {
+    let food = super::object(10, ObjectKind::Food, 35, 35);
+    let mut r = Rig::with_role(ONE_SELECTOR, geese_bt(), Role::GeeseBt);
+    assert_eq!(r.step(&Step::at(cell(0))).stats.fitness, 0.0, "no B, E = 0");
+    assert_eq!(r.step(&Step::at(cell(1)).carrying(food)).stats.fitness, 1.0 + 5.0, "E = 1, C = 5");
+    let mut r = Rig::with_role(DROP, geese_bt(), Role::GeeseBt);
+    let hub_food = super::object(11, ObjectKind::Food, 1, 1);
+    let i = r.step(&Step::at(Pos::new(2, 2)).carrying(hub_food));
+    assert_eq!(i.ops, [geese_proto::Op::Drop { object: 11 }]);
+    assert_eq!(i.stats.fitness, 5.0, "F = 5 once dropped into the hub, C = 0");
+    assert_eq!(r.step(&Step::at(Pos::new(2, 2))).stats.fitness, 5.0, "F stays with the gene");
+    // The D term adds the phenotype's diversity (DummyNode alone: 0 of the nine names).
+    let d = LearnerConfig { terms: Some(FitnessTerms::parse("D+E").unwrap()), ..cfg() };
+    let p = "[Selector][PostCnd]IsCarrying_Food[/PostCnd][PostCnd]IsVisitedBefore_Hub[/PostCnd][/Selector]";
+    assert!(approx(Rig::new(p, d).step(&Step::at(cell(0))).stats.fitness, 5.5556));
+}
+
+/// §6.7 (CODE `resilience_evolution`): GEESE-BT's genetic step waits for an age over
+/// `stagnation_age` (200) even with a full pool, and an agent whose gene delivered
+/// (F > 0) keeps it; stagnation takes fresh individuals when fitness ≤ 0 and age > 100.
+#[test]
+fn geese_bt_triggers_wait_for_age_and_spare_deliverers() {
+    let mut r = Rig::with_role(ONE_SELECTOR, geese_bt(), Role::GeeseBt);
+    // Fitness stays 0 in one cell: stagnation fires at age 101.
+    let fired = r.run(101, &Step::at(cell(0)));
+    assert_eq!(fired, vec![(101, GeneticTrigger::Stagnation)]);
+    // With E > 0 a full pool waits until age 201.
+    let mut r = Rig::with_role(ONE_SELECTOR, geese_bt(), Role::GeeseBt);
+    r.step(&Step::at(cell(0)));
+    let fired = r.run(210, &Step::at(cell(1)).lt(1.0, &[1, 2, 3]));
+    assert_eq!(fired.first(), Some(&(201, GeneticTrigger::Storage)), "{fired:?}");
+    // A gene that delivered is kept whatever the pool.
+    let mut r = Rig::with_role(DROP, geese_bt(), Role::GeeseBt);
+    let hub_food = super::object(11, ObjectKind::Food, 1, 1);
+    r.step(&Step::at(Pos::new(2, 2)).carrying(hub_food));
+    assert!(r.run(300, &Step::at(Pos::new(2, 2)).lt(1.0, &[1, 2, 3])).is_empty());
+}
+
+/// §7.1: the collect phase stores the current gene under the class of its single
+/// action when that action succeeded this tick, and replaces it only by a fitter gene;
+/// an action that failed stores nothing.
+#[test]
+fn collect_phase_fills_the_gene_dict_with_successful_actions() {
+    let explore = "[Sequence][Sequence][Act]Explore_0_Normal[/Act][/Sequence][/Sequence]";
+    let mut r = Rig::with_role(explore, cfg(), Role::Collect);
+    r.step(&Step::at(cell(0)));
+    let d = r.learner.gene_dict().expect("a collect learner has a GeneDict");
+    assert_eq!(d.keys().collect::<Vec<_>>(), ["ExploreNormal"]);
+    assert_eq!(d["ExploreNormal"].fitness, r.learner.fitness());
+    assert_eq!(&*d["ExploreNormal"].genome, &*r.learner.gene().genome);
+    // CompositeDrop fails when not carrying: nothing stored.
+    let mut r = Rig::with_role(DROP, cfg(), Role::Collect);
+    r.step(&Step::at(cell(0)));
+    assert!(r.learner.gene_dict().expect("GeneDict").is_empty());
+    // The member written to population.json carries it.
+    assert!(r.learner.member().gene_dict.is_some());
+}
+
+/// §7.2: a combine learner's tree takes its controllers from its own GeneDict, and a
+/// received combine genome is decoded against the receiver's GeneDict.
+#[test]
+fn combine_phase_trees_are_built_from_the_own_gene_dict() {
+    let combine = Arc::new(
+        Grammar::parse(grammars::builtin("multi-combine-foraging").expect("built-in")).expect("combine grammar"),
+    );
+    let explore = "[Sequence][Selector][PostCnd]IsCarrying_Food[/PostCnd][Sequence][Act]Explore_0_Normal[/Act][/Sequence][/Selector][/Sequence]";
+    let mut dict = GeneDict::new();
+    for k in ["ExploreNormal", "MoveTowardsNormal", "MoveAwayNormal", "CompositeSingleCarry", "CompositeDrop"] {
+        dict.insert(k.into(), StoredGene { phenotype: explore.into(), genome: Arc::from([]), fitness: 1.0 });
+    }
+    let cfg = Arc::new(cfg());
+    let l = Learner::with_role(ME, cfg.clone(), combine.clone(), geom(), HUB, SEED, Role::Combine(Arc::new(dict)))
+        .expect("every slot filled");
+    let text = l.tree().render();
+    assert!(!text.contains("AbsentAction") && text.contains("Explore"), "{text}");
+    // Without its GeneDict the combine grammar's slots do not build: an error, never
+    // an empty tree.
+    assert!(Learner::new(ME, cfg, combine, geom(), HUB, SEED).is_err());
+}
+
+/// §6.8 / §7.3: a fixed agent ticks its tree every step, offers no gene even while
+/// lateral transfer is on, and never runs a genetic step.
+#[test]
+fn fixed_agents_act_but_neither_share_nor_evolve() {
+    let tree = program::build_tree("[Sequence][Sequence][Act]MoveTowards_Hub_Normal[/Act][/Sequence][/Sequence]", None)
+        .expect("tree");
+    let mut r = Rig::with_role(ONE_SELECTOR, cfg_st(4), Role::Fixed(tree));
+    for k in 0..5 {
+        let i = r.step(&Step::at(cell(k)).lt(1.0, &[1, 2, 3]));
+        assert!(r.offered.is_none());
+        assert_eq!(i.stats.genetic, GeneticTrigger::None);
+        assert_eq!(i.stats.lt_rate, 0);
+        assert!(matches!(i.ops[..], [geese_proto::Op::Move { .. }]), "{:?}", i.ops);
+    }
 }

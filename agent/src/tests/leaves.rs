@@ -525,17 +525,17 @@ fn avoid_keeps_the_heading_when_the_ray_meets_no_edge() {
     assert_eq!(v.ops, [Op::Move { to: Pos::new(23, 5), heading: aim }]);
 }
 
-/// A recorded departure (NOTES.md, "Deliberate departures"). REFERENCE §1.8 + §2.3: the
-/// reference world is sequential and NeighbourObjects senses the cell the agent is in
-/// *now*, after its own moves earlier in the same tick, so there
+/// REFERENCE §1.8 + §2.3: the reference world is sequential and NeighbourObjects senses
+/// the cell the agent is in *now*, after its own moves earlier in the same tick, so
 /// Sequence[MoveTowards_Sites, CompositeSingleCarry_Food] from (−19,−25) moves to
-/// (−21,−26), inside the site's cell, and picks its food in one tick. Here an agent
-/// senses only its start-of-step percept (DESIGN §2 snapshot): in the new cell it sees
-/// no food and the pick fails. Single-action BeTr-GEESE trees (§3.2) never meet this;
-/// GEESE-BT and Multi-GEESE trees (issue 16) do. If percepts come to carry the cells a
-/// move can reach, this test is to assert the REFERENCE's pick.
+/// (−21,−26), inside the site's cell, and picks its food in one tick. An agent sees the
+/// world through its start-of-step percept (DESIGN §2); a percept of reach 1 carries the
+/// objects of the cells around its own, and with it the pick happens as in the
+/// reference. Runs whose trees hold several actions (GEESE-BT, Multi-GEESE combine,
+/// fixed populations) get reach 1; with reach 0 (BeTr-GEESE: one action a tick, after
+/// which nothing senses) the food in the new cell is not seen.
 #[test]
-fn sensing_after_a_move_in_the_same_tick_sees_only_the_start_percept() {
+fn sensing_after_a_move_in_the_same_tick_sees_the_cell_moved_into() {
     use crate::bt::{Bt, Status};
     use crate::ge::{CompositeKind, PNode};
     let act = |t: &str| PNode::Leaf { text: t.into(), tag: "Act".into() };
@@ -544,10 +544,39 @@ fn sensing_after_a_move_in_the_same_tick_sees_only_the_start_percept() {
         children: vec![act("MoveTowards_Sites_Normal"), act("CompositeSingleCarry_Food")],
     };
     let mut bt = Bt::from_pnode(&p).expect("tree");
-    // The world: the site's cell holds the site and food 10; the agent's own cell is empty,
-    // so that is what its percept shows.
+    // The site's cell holds the site and food 10; the agent's own cell is empty.
+    let mut v = World::at(-19, -25).knowing(site()).around(site()).around(food(10)).view();
+    assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Success);
+    assert_eq!(v.pos, Pos::new(-21, -26), "the move into the site's cell happens");
+    assert_eq!(v.ops.last(), Some(&Op::Pick { object: 10 }), "and the food there is picked");
+    // Reach 0: only the start cell is known.
+    let mut bt = Bt::from_pnode(&p).expect("tree");
     let mut v = World::at(-19, -25).knowing(site()).view();
     assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Failure);
-    assert_eq!(v.pos, Pos::new(-21, -26), "the move into the site's cell happens");
+    assert_eq!(v.pos, Pos::new(-21, -26));
     assert!(!v.ops.contains(&Op::Pick { object: 10 }), "the food there is not seen");
+}
+
+/// With reach 1, a drop after a move lands where the agent ends up: food carried into
+/// the hub's cell within the tick is delivered there (REFERENCE §2.4 Drop), and an
+/// object picked from a neighbouring cell is gone from the view's area.
+#[test]
+fn drops_and_picks_after_a_move_use_the_cell_moved_into() {
+    use crate::bt::{Bt, Status};
+    use crate::ge::{CompositeKind, PNode};
+    let act = |t: &str| PNode::Leaf { text: t.into(), tag: "Act".into() };
+    let p = PNode::Composite {
+        kind: CompositeKind::Sequence,
+        children: vec![act("MoveTowards_Hub_Normal"), act("CompositeDrop_Food")],
+    };
+    let mut bt = Bt::from_pnode(&p).expect("tree");
+    // From (10, 5), carrying (step length 1), heading to the hub: the move ends at
+    // (9, 5), in the hub's cell.
+    let mut v = World::at(10, 5).carrying(food(10)).around(HUB).view();
+    assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Success);
+    assert_eq!(v.pos, Pos::new(9, 5));
+    assert_eq!(v.pos, Pos::new(9, 5));
+    assert_eq!(v.ops.last(), Some(&Op::Drop { object: 10 }));
+    assert_eq!(v.delivered, 5, "into the hub: the task reward F counts it");
+    assert!(v.area.iter().all(|o| o.id != 10), "delivered, not lying in the area");
 }

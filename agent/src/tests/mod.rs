@@ -11,8 +11,8 @@
 //! The expectations are the REFERENCE's, not the code's current output. Where the code
 //! disagrees for a reason of the design, the disagreement is recorded in NOTES.md as a
 //! departure, and its test asserts the code's behaviour and says what REFERENCE expects
-//! (one such:
-//! `leaves::sensing_after_a_move_in_the_same_tick_sees_only_the_start_percept`). Each test was
+//! (none is left: the same-tick sensing departure was lifted by percepts of reach 1,
+//! `leaves::sensing_after_a_move_in_the_same_tick_sees_the_cell_moved_into`). Each test was
 //! checked to fail when the behaviour it names is broken (a mutation of the code).
 use crate::view::View;
 use geese_proto::seed::{derive, Owner, Purpose};
@@ -63,6 +63,8 @@ pub(super) struct World {
     pub nearby: Vec<ObjectInfo>,
     pub mates: u32,
     pub known: Vec<ObjectInfo>,
+    /// Objects of the cells around the agent's that its percept carries (reach 1).
+    pub area: Vec<ObjectInfo>,
 }
 
 impl World {
@@ -77,7 +79,14 @@ impl World {
             nearby: Vec::new(),
             mates: 0,
             known: vec![HUB],
+            area: Vec::new(),
         }
+    }
+    /// An object registered in a cell next to the agent's, which its percept carries
+    /// (a percept of reach 1).
+    pub fn around(mut self, o: ObjectInfo) -> World {
+        self.area.push(o);
+        self
     }
     pub fn heading(mut self, h: f64) -> World {
         self.heading = h;
@@ -131,6 +140,8 @@ impl World {
             regime: Regime::default(),
             objects: self.objects.clone(),
             nearby_impassable: self.nearby.clone(),
+            reach: u8::from(!self.area.is_empty()),
+            area: self.area.clone(),
             agents,
         }
     }

@@ -6,7 +6,7 @@ use geese_orchestrator::campaign::{
 use geese_orchestrator::config::RunSpec;
 use geese_orchestrator::report::{self, ReportOptions};
 use geese_orchestrator::store::Store;
-use geese_orchestrator::TrialSummary;
+use geese_orchestrator::trial::Ran;
 use geese_proto::StepReport;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -129,7 +129,7 @@ impl TrialRunner for Seed2Fails {
     fn transport(&self) -> &str {
         self.transport
     }
-    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<Ran, TrialError> {
         if spec.config.seed == 2 {
             return Err((self.fail)());
         }
@@ -222,7 +222,7 @@ impl<R: TrialRunner> TrialRunner for Recorder<R> {
     fn transport(&self) -> &str {
         self.inner.transport()
     }
-    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<TrialSummary, TrialError> {
+    fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<Ran, TrialError> {
         let mut reps = Vec::new();
         let s = self.inner.run(spec, &mut |r| {
             reps.push(r.clone());
