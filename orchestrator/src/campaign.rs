@@ -424,16 +424,60 @@ pub fn run_stages(
     spec: &RunSpec,
     observe: &mut dyn FnMut(&StepReport),
     stage_done: &mut dyn FnMut(&RunSpec, &Ran, &geese_agent::Population),
+    cache: Option<&StageCache>,
 ) -> Result<Ran, TrialError> {
     let mut cur = spec.clone();
     loop {
-        let last = cur.follow_up == crate::config::FollowUp::None;
-        let ran = if last { runner.run(&cur, observe)? } else { runner.run(&cur, &mut |_| {})? };
-        let pop = cur.population(ran.members.clone());
-        stage_done(&cur, &ran, &pop);
+        if cur.follow_up == crate::config::FollowUp::None {
+            let ran = runner.run(&cur, observe)?;
+            let pop = cur.population(ran.members.clone());
+            stage_done(&cur, &ran, &pop);
+            return Ok(ran);
+        }
+        let key = cache.map(|_| StageCache::key(&cur));
+        let cached = cache.zip(key.as_ref()).and_then(|(c, k)| c.get(k));
+        let pop = match cached {
+            Some(pop) => pop,
+            None => {
+                let ran = runner.run(&cur, &mut |_| {})?;
+                let pop = cur.population(ran.members.clone());
+                stage_done(&cur, &ran, &pop);
+                if let (Some(c), Some(k)) = (cache, key) {
+                    c.put(k, pop.clone());
+                }
+                pop
+            }
+        };
         match cur.next_stage(&pop)? {
             Some(next) => cur = next,
-            None => return Ok(ran),
+            None => return Err("a stage with a follow-up had none".into()),
+        }
+    }
+}
+
+/// The populations a campaign's learning stages ended with, by stage configuration:
+/// trials that differ only in how they test a learned population (Fig. 8b's sampling
+/// sizes) learn it once. A learning stage's result depends on its configuration alone.
+#[derive(Default)]
+pub struct StageCache {
+    pops: std::sync::Mutex<std::collections::HashMap<String, geese_agent::Population>>,
+}
+
+impl StageCache {
+    fn key(spec: &RunSpec) -> String {
+        let mut c = spec.config.clone();
+        // Settings read only by the fixed test that follows.
+        c.sample = None;
+        c.strategy = None;
+        let program = serde_json::to_string(&*spec.program).unwrap_or_default();
+        format!("{}|{}|{}", spec.stage, serde_json::to_string(&c).unwrap_or_default(), program)
+    }
+    fn get(&self, key: &str) -> Option<geese_agent::Population> {
+        self.pops.lock().ok()?.get(key).cloned()
+    }
+    fn put(&self, key: String, pop: geese_agent::Population) {
+        if let Ok(mut m) = self.pops.lock() {
+            m.insert(key, pop);
         }
     }
 }
@@ -510,6 +554,7 @@ pub fn run_campaign(
     let interrupted = AtomicBool::new(false);
     let (tx, rx) = std::sync::mpsc::channel::<(TrialRecord, TrialResult)>();
     let stride = campaign.file.step_stride;
+    let cache = &StageCache::default();
     let mut out = CampaignOutcome { planned: plan.len(), skipped, ..Default::default() };
     let mut write_error: Option<StoreError> = None;
     std::thread::scope(|s| {
@@ -524,7 +569,7 @@ pub fn run_campaign(
                         return;
                     }
                     let spec = campaign.spec(t);
-                    match run_one(runner, &spec, stride) {
+                    match run_one(runner, &spec, stride, cache) {
                         Some(result) => {
                             let _ = tx.send((rec.clone(), result));
                         }
@@ -579,7 +624,7 @@ pub fn run_campaign(
 
 /// Run one trial, catching errors and panics, and thin its step rows; `None` when the
 /// runner was interrupted ([`Interrupted`]).
-fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> Option<TrialResult> {
+fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64, cache: &StageCache) -> Option<TrialResult> {
     let steps = spec.config.steps;
     let theta = spec.config.threshold;
     let mut rows: Vec<StepReport> = Vec::new();
@@ -592,7 +637,7 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64) -> Option<Tria
                 rows.push(rep.clone());
             }
         };
-        run_stages(runner, spec, &mut observe, &mut |_, _, _| {}).map(|r| r.summary)
+        run_stages(runner, spec, &mut observe, &mut |_, _, _| {}, Some(cache)).map(|r| r.summary)
     }));
     let wall = started.elapsed().as_secs_f64();
     let error = match r {

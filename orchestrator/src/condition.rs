@@ -84,6 +84,17 @@ macro_rules! knobs {
 const STEP_MAX: i64 = 100_000_000;
 
 knobs! {
+    /// Learning algorithm: betr-geese, geese-bt or multi-geese (Figs. 3, 8, 9).
+    Algorithm = "algorithm": Kind::Text,
+    /// Fitness terms of the learners, e.g. `E+B`, `D+E+C+F` (Fig. 3).
+    Terms = "terms": Kind::Text,
+    /// Fixed-population test: this fraction of the best members (of `population`, or
+    /// of the population the trial's own learning run ended with; Figs. 8b, 9).
+    Sample = "sample": Kind::Float(0.0, 1.0),
+    /// A fixed population file to run (`{task}` stands for the task; Fig. 10).
+    Population = "population": Kind::Text,
+    /// How a fixed population is handed out: parallel or top-agents.
+    Strategy = "strategy": Kind::Text,
     /// Grammar name or file; `{task}` is replaced by `foraging`/`nest`
     /// (e.g. `betr-{task}-addition`, the Normal|Avoid grammar of Sec. 5 addition).
     Grammar = "grammar": Kind::Text,
@@ -288,6 +299,28 @@ impl Condition {
 
         if let Some(Level::Text(g)) = self.get(Knob::Grammar) {
             c.grammar = Some(g.clone());
+        }
+        if let Some(Level::Text(a)) = self.get(Knob::Algorithm) {
+            c.algorithm = a.parse().map_err(|e: String| knob_err(Knob::Algorithm, e))?;
+        }
+        if let Some(Level::Text(t)) = self.get(Knob::Terms) {
+            c.learner.terms = Some(geese_agent::FitnessTerms::parse(t).map_err(|e| knob_err(Knob::Terms, e))?);
+        }
+        if let Some(s) = self.float(Knob::Sample) {
+            if s <= 0.0 {
+                return Err(knob_err(Knob::Sample, "a sample of 0 selects no member"));
+            }
+            c.sample = Some(s);
+        }
+        if let Some(Level::Text(p)) = self.get(Knob::Population) {
+            c.population = Some(p.replace("{task}", &task.to_string()).into());
+        }
+        if let Some(Level::Text(s)) = self.get(Knob::Strategy) {
+            c.strategy = Some(s.parse().map_err(|e: String| knob_err(Knob::Strategy, e))?);
+        }
+        if let Some(p) = &c.population {
+            let p = p.to_string_lossy().replace("{task}", &task.to_string());
+            c.population = Some(p.into());
         }
         // `{task}` in a grammar name (knob or base) stands for the task.
         c.grammar = c.grammar.map(|g| g.replace("{task}", &task.to_string()));

@@ -23,7 +23,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
 use tokio::sync::Notify;
 use zenoh::sample::SampleKind;
-use zenoh::{Session, Wait};
+use zenoh::Session;
 
 #[derive(Parser)]
 #[command(name = "geese-world", version, about = "GEESE world server (Zenoh)")]
@@ -76,12 +76,18 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
     let wake = Arc::new(Notify::new());
 
     let s = server.clone();
+    // Replies go out from a task: a run info carrying a combine phase's GeneDicts or a
+    // fixed population is hundreds of kilobytes, and a blocking reply from inside the
+    // callback stalled Zenoh's single runtime thread that must drain it.
+    let rt = tokio::runtime::Handle::current();
     let _queryable = session
         .declare_queryable(keys::info(&run))
         .callback(move |q| {
             let info = lock(&s).run_info();
             if let Ok(bytes) = encode(&info) {
-                let _ = q.reply(q.key_expr().clone(), bytes).wait();
+                rt.spawn(async move {
+                    let _ = q.reply(q.key_expr().clone(), bytes).await;
+                });
             }
         })
         .await
