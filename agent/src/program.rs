@@ -482,6 +482,25 @@ impl Population {
         serde_json::from_str(text).map_err(|e| e.to_string())
     }
 
+    /// The file text: the header fields one per line, then one member per line (a
+    /// genome is a hundred codons; one codon per line made files of megabytes).
+    pub fn to_json(&self) -> String {
+        let mut head = Population { members: Vec::new(), ..self.clone() };
+        head.members.clear();
+        let mut out = String::from("{\n");
+        if let Ok(serde_json::Value::Object(m)) = serde_json::to_value(&head) {
+            for (k, v) in m.iter().filter(|(k, _)| *k != "members") {
+                out.push_str(&format!("  {}: {v},\n", serde_json::Value::String(k.clone())));
+            }
+        }
+        out.push_str("  \"members\": [\n");
+        let lines: Vec<String> =
+            self.members.iter().map(|m| format!("    {}", serde_json::to_string(m).unwrap_or_default())).collect();
+        out.push_str(&lines.join(",\n"));
+        out.push_str("\n  ]\n}\n");
+        out
+    }
+
     /// The members best first: by fitness (descending, stable) when every member has
     /// one, else in file order.
     pub fn sorted_members(&self) -> Vec<&Member> {
@@ -684,5 +703,8 @@ mod tests {
         let text = r#"{"grammar": "betr-foraging-avoid", "strategy": "parallel", "members": [{"phenotype": "x"}]}"#;
         assert_eq!(Population::from_json(text).unwrap().strategy, Some(Strategy::Parallel));
         assert!(Population::from_json(r#"{"grammar": "g", "members": [], "extra": 1}"#).unwrap_err().contains("extra"));
+        let round = Population::from_json(&pop.to_json()).unwrap();
+        assert_eq!(round, pop);
+        assert_eq!(pop.to_json().lines().count(), 7, "brace, 2 header lines, members line, 1 member, bracket, brace");
     }
 }

@@ -127,7 +127,9 @@ impl Campaign {
     pub fn from_file(path: &Path) -> Result<Campaign, CampaignError> {
         let text = std::fs::read_to_string(path).map_err(|source| CampaignError::Read { path: path.into(), source })?;
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "campaign".into());
-        Campaign::from_toml(&text, &stem).map_err(|e| match e {
+        let file: CampaignFile =
+            toml::from_str(&text).map_err(|e| CampaignError::Parse { path: path.into(), message: e.to_string() })?;
+        Campaign::new_in(file, text, &stem, path.parent()).map_err(|e| match e {
             CampaignError::Parse { message, .. } => CampaignError::Parse { path: path.into(), message },
             other => other,
         })
@@ -140,8 +142,21 @@ impl Campaign {
         Campaign::new(file, text.to_string(), default_name)
     }
 
-    /// Validate a parsed campaign file.
+    /// Validate a parsed campaign file; relative population paths are taken from the
+    /// current directory.
     pub fn new(file: CampaignFile, text: String, default_name: &str) -> Result<Campaign, CampaignError> {
+        Campaign::new_in(file, text, default_name, None)
+    }
+
+    /// Validate a parsed campaign file read from directory `dir`: relative paths of
+    /// population files in it (`population`, `collect_population`) are relative to that
+    /// directory.
+    pub fn new_in(
+        file: CampaignFile,
+        text: String,
+        default_name: &str,
+        dir: Option<&Path>,
+    ) -> Result<Campaign, CampaignError> {
         let name = file.name.clone().unwrap_or_else(|| default_name.to_string());
         if name.trim().is_empty() || name.contains(['/', '\\']) {
             return Err(invalid("name", "must be a non-empty name without path separators"));
@@ -228,9 +243,16 @@ impl Campaign {
             let mut per_task = Vec::new();
             for &task in &file.tasks {
                 let where_ = format!("grid condition {} ('{}'), task {task}", ci + 1, c.label());
-                let cfg = c
+                let mut cfg = c
                     .apply(&file.base, task, file.first_seed, coupling)
                     .map_err(|e| invalid(e.knob, format!("{} ({where_})", e.reason)))?;
+                if let Some(dir) = dir {
+                    for p in [&mut cfg.population, &mut cfg.collect_population].into_iter().flatten() {
+                        if p.is_relative() {
+                            *p = dir.join(&*p);
+                        }
+                    }
+                }
                 let spec = cfg.validate().map_err(|e| invalid(format!("base or grid ({where_})"), e.to_string()))?;
                 per_task.push(Arc::new(spec));
             }

@@ -344,8 +344,7 @@ fn run_cmd(a: RunArgs) -> Result<()> {
         let pop = spec.population(members);
         if !spec.program.is_fixed() {
             let path = dir.join("population.json");
-            std::fs::write(&path, serde_json::to_vec_pretty(&pop)?)
-                .with_context(|| format!("cannot write {}", path.display()))?;
+            std::fs::write(&path, pop.to_json()).with_context(|| format!("cannot write {}", path.display()))?;
             println!("population: {} ({} members)", path.display(), pop.members.len());
         }
         match spec.next_stage(&pop)? {
