@@ -10,7 +10,7 @@ use geese_orchestrator::Trial;
 use geese_proto::net::{nest, Deadlines, LossRates, NetReport, Raw};
 use geese_proto::{Perturbation, StepReport};
 use geese_world::Layout;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -707,4 +707,74 @@ fn fifty_trials_back_to_back_in_one_process_never_wait_on_a_deadline() {
         started.elapsed().as_secs_f64(),
         slowest.as_secs_f64()
     );
+}
+
+/// Issue 16: each algorithm, and a fixed population, runs the same over Zenoh as in one
+/// process — every stage of it (a Multi-GEESE collect phase, then its combine phase
+/// with each agent's GeneDict; a learning run, then the fixed test of its population):
+/// the same step reports, and the same population at the end of each stage.
+#[test]
+fn every_algorithm_and_fixed_populations_equal_their_in_process_runs_over_zenoh() {
+    use geese_agent::{Algorithm, Population};
+    use geese_orchestrator::campaign::{run_stages, InProcess, TrialRunner};
+    use geese_orchestrator::launch::OverZenoh;
+    let _one_at_a_time = serial();
+    let five =
+        |task: &str| Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../populations/{task}-five-behaviours.json"));
+    let mut cases: Vec<(&str, RunConfig)> = Vec::new();
+    let mut gbt = config(24, 120, 3, Layout::Paper);
+    gbt.algorithm = Algorithm::GeeseBt;
+    cases.push(("geese-bt", gbt));
+    let mut multi = config(24, 100, 4, Layout::Paper);
+    multi.algorithm = Algorithm::MultiGeese;
+    cases.push(("multi-geese collect + combine", multi));
+    let mut betr = config(24, 100, 5, Layout::Paper);
+    betr.sample = Some(0.5);
+    cases.push(("betr-geese + parallel fixed test", betr));
+    for task in [geese_world::Task::Foraging, geese_world::Task::Nest] {
+        let mut fixed = config(24, 120, 6, Layout::Paper);
+        fixed.world.task = task;
+        fixed.population = Some(five(&task.to_string()));
+        cases.push((if task == geese_world::Task::Foraging { "fixed foraging" } else { "fixed nest" }, fixed));
+    }
+    let run = |runner: &dyn TrialRunner, cfg: &RunConfig| {
+        let spec = cfg.clone().validate().expect("valid config");
+        let mut reps: Vec<StepReport> = Vec::new();
+        let mut pops: Vec<(String, Population)> = Vec::new();
+        run_stages(
+            runner,
+            &spec,
+            &mut |r| reps.push(r.clone()),
+            &mut |s, _, p| pops.push((s.stage.to_string(), p.clone())),
+            None,
+        )
+        .expect("stages run");
+        (reps, pops)
+    };
+    let zenoh = OverZenoh { opts: options(3, None) };
+    for (name, cfg) in &cases {
+        let (want, want_pops) = run(&InProcess, cfg);
+        let (got, got_pops) = run(&zenoh, cfg);
+        assert_eq!(got.len(), cfg.steps as usize, "{name}");
+        assert_eq!(got, want, "{name}: step reports differ");
+        for ((gs, g), (ws, w)) in got_pops.iter().zip(&want_pops) {
+            assert_eq!(gs, ws, "{name}: stages");
+            for (i, (gm, wm)) in g.members.iter().zip(&w.members).enumerate() {
+                assert_eq!(gm, wm, "{name} {gs}: member {i} differs");
+            }
+            assert_eq!(g, w, "{name} {gs}: population header differs");
+        }
+        assert_eq!(got_pops.len(), want_pops.len(), "{name}: stages");
+        let stages: Vec<&str> = want_pops.iter().map(|(s, _)| s.as_str()).collect();
+        let expected: &[&str] = match *name {
+            "multi-geese collect + combine" => &["collect", "combine"],
+            "betr-geese + parallel fixed test" => &["learn", "fixed"],
+            "geese-bt" => &["learn"],
+            _ => &["fixed"],
+        };
+        assert_eq!(stages, expected, "{name}");
+        for (stage, pop) in &want_pops {
+            assert_eq!(pop.members.len(), 24, "{name} {stage}: one member per agent");
+        }
+    }
 }
