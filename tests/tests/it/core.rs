@@ -163,3 +163,118 @@ fn cli_run_writes_csv_and_manifest() {
     assert_eq!(m["config"]["world"]["agents"], 20);
     assert!(m["versions"]["git_revision"].is_string());
 }
+
+/// Issue 16, bad input: an unknown algorithm, a population of the wrong grammar or task,
+/// an empty sample, a GeneDict key that is no action class, a phenotype that does not
+/// build — each a clear error naming the value, never a panic.
+#[test]
+fn cli_rejects_bad_algorithms_and_populations_by_name() {
+    let pops = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../populations");
+    let five = pops.join("foraging-five-behaviours.json");
+    let five = five.to_str().expect("utf8");
+    let no_panic = |err: &str| assert!(!err.contains("panicked"), "{err}");
+    let (ok, _, err) = geese(&["run", "--algorithm", "betr", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("'betr'") && err.contains("multi-geese"), "{err}");
+    let (ok, _, err) = geese(&["run", "--population", five, "--sample", "0.001", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("sample 0.001 of 5 members selects none"), "{err}");
+    let (ok, _, err) = geese(&["run", "--population", five, "--task", "nest", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("foraging task") && err.contains("nest"), "{err}");
+    let (ok, _, err) = geese(&["run", "--population", five, "--grammar", "geese-bt-foraging", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("[PostCnd]") && err.contains("geese-bt-foraging"), "{err}");
+    let (ok, _, err) = geese(&["run", "--phase", "combine", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("phase"), "{err}");
+    let (ok, _, err) = geese(&["run", "--terms", "E+Q", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("'Q'"), "{err}");
+    let dir = tempfile::tempdir().expect("tmp");
+    let write = |name: &str, text: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).expect("write");
+        p.to_str().expect("utf8").to_string()
+    };
+    let bad_key = write(
+        "bad-key.json",
+        r#"{"grammar": "multi-collect-foraging", "members": [{"phenotype": "x", "agent": 0,
+            "gene_dict": {"Fly": {"phenotype": "[Sequence][Sequence][Act]Explore_0_Normal[/Act][/Sequence][/Sequence]"}}}]}"#,
+    );
+    let (ok, _, err) = geese(&[
+        "run",
+        "--algorithm",
+        "multi-geese",
+        "--phase",
+        "combine",
+        "--collect-population",
+        &bad_key,
+        "--steps",
+        "1",
+        "-q",
+    ]);
+    assert!(!ok && err.contains("GeneDict key 'Fly'"), "{err}");
+    let bad_leaf = write(
+        "bad-leaf.json",
+        r#"{"grammar": "betr-foraging-avoid", "members": [{"phenotype": "[Sequence][Sequence][Act]Fly_Hub[/Act][/Sequence][/Sequence]"}]}"#,
+    );
+    let (ok, _, err) = geese(&["run", "--population", &bad_leaf, "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("member 0") && err.contains("'Fly'"), "{err}");
+    let (ok, _, err) = geese(&["run", "--population", "/nonexistent/pop.json", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("/nonexistent/pop.json"), "{err}");
+    for e in [&err] {
+        no_panic(e);
+    }
+}
+
+/// Issue 16: the shipped five-behaviour populations run in one command, and a learning
+/// run writes its population, which runs again as a fixed population.
+#[test]
+fn cli_populations_round_trip() {
+    let pops = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../populations");
+    let dir = tempfile::tempdir().expect("tmp");
+    for task in ["foraging", "nest"] {
+        let five = pops.join(format!("{task}-five-behaviours.json"));
+        let out = dir.path().join(task);
+        let (ok, stdout, err) = geese(&[
+            "run",
+            "--task",
+            task,
+            "--population",
+            five.to_str().expect("utf8"),
+            "--steps",
+            "400",
+            "-q",
+            "--out",
+            out.to_str().expect("utf8"),
+        ]);
+        assert!(ok, "{err}");
+        assert!(stdout.contains("reached 80 % at step"), "{task}: the hand-designed controller works: {stdout}");
+        assert!(!out.join("population.json").exists(), "a fixed run writes no population");
+    }
+    let learn = dir.path().join("learn");
+    let (ok, _, err) = geese(&[
+        "run",
+        "--algorithm",
+        "geese-bt",
+        "--agents",
+        "12",
+        "--steps",
+        "60",
+        "-q",
+        "--out",
+        learn.to_str().expect("utf8"),
+    ]);
+    assert!(ok, "{err}");
+    let pop = learn.join("population.json");
+    let p: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&pop).expect("population")).expect("json");
+    assert_eq!(p["grammar"], "geese-bt-foraging");
+    assert_eq!(p["members"].as_array().map(Vec::len), Some(12));
+    let (ok, stdout, err) = geese(&[
+        "run",
+        "--population",
+        pop.to_str().expect("utf8"),
+        "--steps",
+        "20",
+        "-q",
+        "--out",
+        dir.path().join("fixed").to_str().expect("utf8"),
+    ]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("final task %"), "{stdout}");
+}
