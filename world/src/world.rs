@@ -232,21 +232,14 @@ impl World {
         // Impassable objects a move or probe from this cell can meet: cells within
         // ceil(3 / GS) columns and rows (at least one).
         let reach = ((AGENT_RADIUS + self.geom.grid - 1) / self.geom.grid).max(1);
-        let (c0, r0) = self.geom.cell_col_row(cell);
         let mut nearby_impassable: Vec<ObjectInfo> = Vec::new();
-        for r in (r0 - reach).max(0)..=(r0 + reach).min(self.geom.rows() - 1) {
-            for c in (c0 - reach).max(0)..=(c0 + reach).min(self.geom.cols() - 1) {
-                let idx = (r * self.geom.cols() + c) as CellIdx;
-                if idx == cell {
-                    continue;
-                }
-                for o in self.objects_in(idx) {
-                    if !o.kind.passable()
-                        && !objects.iter().any(|x| x.id == o.id)
-                        && !nearby_impassable.iter().any(|x| x.id == o.id)
-                    {
-                        nearby_impassable.push(*o);
-                    }
+        for idx in self.cells_around(cell, reach) {
+            for o in self.objects_in(idx) {
+                if !o.kind.passable()
+                    && !objects.iter().any(|x| x.id == o.id)
+                    && !nearby_impassable.iter().any(|x| x.id == o.id)
+                {
+                    nearby_impassable.push(*o);
                 }
             }
         }
@@ -259,26 +252,31 @@ impl World {
     /// Non-agent objects registered within `reach` cells of `cell` but not in `own`
     /// (the cell's objects), each once.
     fn area(&self, cell: CellIdx, reach: i32, own: &[ObjectInfo]) -> Vec<ObjectInfo> {
-        let (c0, r0) = self.geom.cell_col_row(cell);
         let mut seen = vec![false; self.objects.len()];
         for o in own {
             seen[o.id as usize] = true;
         }
         let mut area = Vec::new();
-        for r in (r0 - reach).max(0)..=(r0 + reach).min(self.geom.rows() - 1) {
-            for c in (c0 - reach).max(0)..=(c0 + reach).min(self.geom.cols() - 1) {
-                let idx = (r * self.geom.cols() + c) as CellIdx;
-                if idx == cell {
-                    continue;
-                }
-                for o in self.objects_in(idx) {
-                    if !std::mem::replace(&mut seen[o.id as usize], true) {
-                        area.push(*o);
-                    }
+        for idx in self.cells_around(cell, reach) {
+            for o in self.objects_in(idx) {
+                if !std::mem::replace(&mut seen[o.id as usize], true) {
+                    area.push(*o);
                 }
             }
         }
         area
+    }
+
+    /// The cells within `reach` columns and rows of `cell`, row-major, `cell` itself
+    /// left out (clipped at the arena's edges).
+    fn cells_around(&self, cell: CellIdx, reach: i32) -> impl Iterator<Item = CellIdx> {
+        let (c0, r0) = self.geom.cell_col_row(cell);
+        let (rows, cols) = (self.geom.rows(), self.geom.cols());
+        ((r0 - reach).max(0)..=(r0 + reach).min(rows - 1))
+            .flat_map(move |r| {
+                ((c0 - reach).max(0)..=(c0 + reach).min(cols - 1)).map(move |c| (r * cols + c) as CellIdx)
+            })
+            .filter(move |&idx| idx != cell)
     }
 
     fn public(&self, id: AgentId) -> AgentPublic {
