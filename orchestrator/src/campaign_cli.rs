@@ -115,7 +115,8 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         file.base.world.agents = v;
     }
     let stem = a.file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "campaign".into());
-    let campaign = Campaign::new(file, text, &stem).with_context(|| format!("campaign {}", a.file.display()))?;
+    let campaign = Campaign::new_in(file, text, &stem, a.file.parent())
+        .with_context(|| format!("campaign {}", a.file.display()))?;
     let db = a.db.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}.sqlite", campaign.name)));
     let mut store = Store::create(&db)?;
     // The transport is chosen here; both runners report the same steps for a seed.
