@@ -7,11 +7,13 @@
 //! says which cell every agent's centre is in):
 //! 1. collect each own agent's cell percept, until every live agent is found or the
 //!    percept deadline passes;
-//! 2. `begin_step`, then publish the process's genes of each cell — only of cells where
-//!    an agent of another process is (own cell-mates get them in memory) — as one
-//!    [`GeneBundle`](geese_proto::net::GeneBundle) of per-cell batches, LZ4-packed, and
-//!    wait, up to the gene deadline, for the world's batches of the cells with expected
-//!    cell-mates of other processes;
+//! 2. `begin_step`, then publish the process's genes of each cell — every cell each
+//!    agent's gene must reach ([`for_each_gene_cell`]: its own at GS ≥ 3, the cells of
+//!    its 3×3 block where a live agent has its centre at GS 2), and only cells where
+//!    an agent of another process has its centre (own cell-mates get them in memory) —
+//!    as one [`GeneBundle`](geese_proto::net::GeneBundle) of per-cell batches,
+//!    LZ4-packed, and wait, up to the gene deadline, for the world's batches of the
+//!    cells with expected cell-mates of other processes;
 //! 3. `finish_step` with the genes of the cell (the learner sorts candidates by id), and
 //!    publish all intents as one [`IntentBatch`]. Received genes wait in an [`Inbox`].
 //!
@@ -35,6 +37,7 @@ use geese_proto::net::{
     loss_draw, nest_sized, pack, unpack, GeneBatchCell, GeneBatchHead, GeneBatchRef, GeneBundle, HostCounters,
     HostGenes, HostPercepts, IntentBatch, Raw, RunInfo, Tick, AHEAD_CELL, LOSS_SALT_PERCEPT, NO_CELL,
 };
+use geese_proto::rules::{for_each_gene_cell, genes_spread};
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::{decode, encode, encode_sized, AgentId, CodecError, GeneMsg, Geometry, Intent, Op, Percept};
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -153,9 +156,9 @@ pub struct Host {
     unpacked: Vec<u8>,
     /// The last step whose genes came with its percepts (sent ahead).
     ahead_step: u64,
-    /// Centre cell of each agent of another process in a cell of ours (by agent id,
-    /// `NO_CELL` elsewhere), for filing genes sent ahead (kept only for its buffer).
-    sender_cell: Vec<u32>,
+    /// The cells of ours whose percepts list each agent of another process, for filing
+    /// genes sent ahead (kept only for its buffers).
+    sender_cells: SenderCells,
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
@@ -253,7 +256,7 @@ impl Host {
             heard: HashSet::default(),
             unpacked: Vec::new(),
             ahead_step: 0,
-            sender_cell: Vec::new(),
+            sender_cells: SenderCells::default(),
             present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
@@ -583,21 +586,13 @@ impl Host {
     }
 
     /// File the genes of step `step` that came with its percepts: the other processes'
-    /// packs, each of one batch sent ahead ([`AHEAD_CELL`]). A gene goes to the cell
-    /// its sender's centre is in by this step's percepts, if that is a cell of ours; the
-    /// others are skipped unread.
+    /// packs, each of one batch sent ahead ([`AHEAD_CELL`]). A gene goes to every cell
+    /// of ours whose percept of this step lists its sender: the cells it is registered
+    /// in (at GS ≥ 3 the cell of its centre; at GS 2 up to nine), as its mates there
+    /// expect it. The others are skipped unread.
     fn take_ahead(&mut self, step: u64, packs: &[Raw]) {
         self.ahead_step = step;
-        self.sender_cell.clear();
-        self.sender_cell.resize(self.info.spec.agents as usize, NO_CELL);
-        let (range, geom) = (self.range, self.geom);
-        for (&c, p) in &self.percepts {
-            for a in p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c) {
-                if let Some(x) = self.sender_cell.get_mut(a.id as usize) {
-                    *x = c;
-                }
-            }
-        }
+        self.sender_cells.build(self.range, self.info.spec.agents as usize, &self.percepts);
         let mut scratch = std::mem::take(&mut self.unpacked);
         for p in packs {
             let Ok(nested) = unpack(p.0, &mut scratch) else {
@@ -605,10 +600,10 @@ impl Host {
                 continue;
             };
             for raw in nested {
-                let cells = &self.sender_cell;
-                let cell_of = |from: AgentId| cells.get(from as usize).copied().filter(|&c| c != NO_CELL);
+                let cells = &self.sender_cells;
+                let cells_of = |from: AgentId| cells.of(from).iter().copied();
                 let filed = match raw.open::<GeneBatchHead>() {
-                    Ok(b) if b.step == step && b.cell == AHEAD_CELL => self.inbox.file_by_sender(&b, cell_of),
+                    Ok(b) if b.step == step && b.cell == AHEAD_CELL => self.inbox.file_by_sender(&b, cells_of),
                     _ => false,
                 };
                 if !filed {
@@ -638,6 +633,20 @@ impl Host {
         p.wait_for
             .iter()
             .all(|(&c, mates)| self.heard.contains(&(p.step, c)) || mates.iter().all(|&m| !self.is_present(m)))
+    }
+
+    /// The cells where a live agent has its centre by this step's percepts, each with
+    /// whether an agent of another process is centred there. Exact for every cell near
+    /// an own agent: a percept lists every agent registered in its cell, that is every
+    /// agent centred in a cell of the block around it (GS 2).
+    fn centres(&self) -> FastMap<u32, bool> {
+        let mut centres: FastMap<u32, bool> = FastMap::default();
+        for p in self.percepts.values() {
+            for a in p.agents.iter().filter(|a| a.live) {
+                *centres.entry(self.geom.cell_of(a.pos)).or_default() |= !self.range.contains(a.id);
+            }
+        }
+        centres
     }
 
     /// Publish gene batches (nested) of step `step` as one packed [`GeneBundle`].
@@ -682,8 +691,15 @@ impl Host {
         let p_loss = self.info.spec.loss.percept;
         let mut idle: Vec<AgentId> = Vec::new();
         let mut active: Vec<(AgentId, u32)> = Vec::new();
+        // Each cell's own genes (and own agents that offer none), in every cell each
+        // agent's gene must reach (`rules::for_each_gene_cell`): at GS ≥ 3 the cell of
+        // its centre; at GS 2 every cell of its 3×3 block where a live agent has its
+        // centre, which our percepts tell (`centres`).
         let mut local: FastMap<u32, Vec<GeneMsg>> = FastMap::default();
         let mut absent: FastMap<u32, Vec<AgentId>> = FastMap::default();
+        let spread = genes_spread(&self.geom);
+        let centres = if spread { self.centres() } else { FastMap::default() };
+        let mut to: Vec<u32> = Vec::new();
         for &id in &own {
             let k = self.idx(id);
             let Some(&c) = self.found.get(&id) else {
@@ -693,17 +709,31 @@ impl Host {
                 continue;
             };
             self.last_cell[k] = c;
-            if p_loss > 0.0 && loss_draw(self.loss_streams[k], t, 0) < p_loss {
-                self.counters.percepts_lost += 1;
-                idle.push(id);
-                absent.entry(c).or_default().push(id);
-                continue;
-            }
             let Some(percept) = self.percepts.get(&c) else {
                 continue;
             };
+            to.clear();
+            match percept.agents.binary_search_by_key(&id, |a| a.id) {
+                Ok(i) => {
+                    for_each_gene_cell(&self.geom, percept.agents[i].pos, |d| centres.contains_key(&d), |d| to.push(d))
+                }
+                Err(_) => to.push(c),
+            }
+            if p_loss > 0.0 && loss_draw(self.loss_streams[k], t, 0) < p_loss {
+                self.counters.percepts_lost += 1;
+                idle.push(id);
+                for &d in &to {
+                    absent.entry(d).or_default().push(id);
+                }
+                continue;
+            }
             if let Some(g) = self.learners[k].begin_step(percept) {
-                local.entry(c).or_default().push(g);
+                if let Some((&last, rest)) = to.split_last() {
+                    for &d in rest {
+                        local.entry(d).or_default().push(g.clone());
+                    }
+                    local.entry(last).or_default().push(g);
+                }
             } else {
                 tracing::trace!(target: "geese::flow", "agents {}: step {t}: agent {id} offers no gene", self.range);
             }
@@ -719,9 +749,13 @@ impl Host {
         out_cells.dedup();
         let mut nested = Vec::new();
         for c in out_cells {
-            let outsiders = self.percepts.get(&c).is_some_and(|p| {
-                p.agents.iter().any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
-            });
+            let outsiders = if spread {
+                centres.get(&c).is_some_and(|&outsider| outsider)
+            } else {
+                self.percepts.get(&c).is_some_and(|p| {
+                    p.agents.iter().any(|a| a.live && !self.range.contains(a.id) && self.geom.cell_of(a.pos) == c)
+                })
+            };
             if !outsiders {
                 continue;
             }
@@ -743,11 +777,12 @@ impl Host {
             self.clock.begin += now.saturating_duration_since(f);
         }
         // Which remote cell-mates each cell waits for: expected mates of another process
-        // whose centre is in the cell (others publish elsewhere and count as lost).
-        // Every own agent in a cell expects the same remote mates (its list differs from
-        // another own agent's only by own ids), so one agent's list per cell will do.
+        // (registered in the cell: their processes publish their genes in it, wherever
+        // their centres are). Every own agent in a cell expects the same remote mates
+        // (its list differs from another own agent's only by own ids), so one agent's
+        // list per cell will do.
         let mut wait_for: FastMap<u32, Vec<AgentId>> = FastMap::default();
-        let (range, geom) = (self.range, self.geom);
+        let range = self.range;
         for &(id, c) in active.iter().filter(|_| !ahead) {
             if wait_for.contains_key(&c) {
                 continue;
@@ -755,8 +790,7 @@ impl Host {
             let Some(p) = self.percepts.get(&c) else {
                 continue;
             };
-            let mut remote: Vec<AgentId> =
-                p.agents.iter().filter(|a| !range.contains(a.id) && geom.cell_of(a.pos) == c).map(|a| a.id).collect();
+            let mut remote: Vec<AgentId> = p.agents.iter().filter(|a| !range.contains(a.id)).map(|a| a.id).collect();
             remote.sort_unstable();
             let mates: Vec<AgentId> = self.learners[self.idx(id)]
                 .expected_mates()
@@ -853,6 +887,52 @@ impl Host {
             "agents {}: {} steps; per step {:.3} ms percepts->genes sent, {:.3} ms gene wait, {:.3} ms finish+intents, {:.3} ms intents->next percept",
             self.range, c.steps, ms(c.begin), ms(c.gene_wait), ms(c.finish), ms(c.between)
         );
+    }
+}
+
+/// For each agent of another process, the cells of ours whose percepts list it (it is
+/// registered there), by agent id: the cells of agent `i` are `cells[at[i]..at[i + 1]]`.
+#[derive(Default)]
+struct SenderCells {
+    at: Vec<u32>,
+    cells: Vec<u32>,
+}
+
+impl SenderCells {
+    /// From this step's percepts, for a run of `agents` agents (ids beyond it are
+    /// left out), leaving out `own`.
+    fn build(&mut self, own: AgentRange, agents: usize, percepts: &FastMap<u32, Percept>) {
+        let listed = || {
+            percepts.iter().flat_map(|(&c, p)| {
+                p.agents.iter().filter(|a| !own.contains(a.id) && (a.id as usize) < agents).map(move |a| (a.id, c))
+            })
+        };
+        // Counts, then their running sums (`at[i]`: the end of agent i's cells), then
+        // filled back to front (`at[i]`: the start).
+        self.at.clear();
+        self.at.resize(agents + 1, 0);
+        for (id, _) in listed() {
+            self.at[id as usize] += 1;
+        }
+        for i in 1..self.at.len() {
+            self.at[i] += self.at[i - 1];
+        }
+        self.cells.clear();
+        self.cells.resize(self.at[agents] as usize, NO_CELL);
+        for (id, c) in listed() {
+            let i = id as usize;
+            self.at[i] -= 1;
+            self.cells[self.at[i] as usize] = c;
+        }
+    }
+
+    /// The cells of agent `id` (none if it is listed nowhere).
+    fn of(&self, id: AgentId) -> &[u32] {
+        let i = id as usize;
+        match (self.at.get(i), self.at.get(i + 1)) {
+            (Some(&a), Some(&b)) => &self.cells[a as usize..b as usize],
+            _ => &[],
+        }
     }
 }
 

@@ -43,17 +43,23 @@ impl Inbox {
         self.file_by_sender(batch, |_| Some(batch.cell))
     }
 
-    /// File a batch whose genes go to the cells `cell_of` names for their senders (a
-    /// batch sent ahead, [`geese_proto::net::AHEAD_CELL`]); the genes of senders it
-    /// names none for are skipped, their genomes not decoded. False, with nothing filed,
-    /// as [`Inbox::file`].
-    pub fn file_by_sender(&mut self, batch: &GeneBatchHead<'_>, cell_of: impl Fn(AgentId) -> Option<u32>) -> bool {
+    /// File a batch whose genes go to the cells `cells_of` names for their senders (a
+    /// batch sent ahead, [`geese_proto::net::AHEAD_CELL`]): each gene under every cell
+    /// named for its sender (at GS 2 a sender is registered in up to nine cells), its
+    /// genome decoded once; the genes of senders it names none for are skipped, their
+    /// genomes not decoded. False, with nothing filed, as [`Inbox::file`].
+    pub fn file_by_sender<I: IntoIterator<Item = u32>>(
+        &mut self,
+        batch: &GeneBatchHead<'_>,
+        cells_of: impl Fn(AgentId) -> I,
+    ) -> bool {
         if batch.genes.iter().any(|g| g.step != batch.step) {
             return false;
         }
         let (codons, slots) = (self.codons.len(), self.slots.len());
         for g in &batch.genes {
-            let Some(cell) = cell_of(g.from) else { continue };
+            let mut cells = cells_of(g.from).into_iter();
+            let Some(cell) = cells.next() else { continue };
             let start = self.codons.len();
             let fits = u32::try_from(start).is_ok();
             if !fits || !genome_codons_into(g.genome.0, &mut self.codons) {
@@ -61,7 +67,7 @@ impl Inbox {
                 self.slots.truncate(slots);
                 return false;
             }
-            self.slots.push(Slot {
+            let slot = Slot {
                 step: g.step,
                 cell,
                 from: g.from,
@@ -69,7 +75,10 @@ impl Inbox {
                 mapping: g.mapping,
                 start: start as u32,
                 len: (self.codons.len() - start) as u32,
-            });
+            };
+            self.slots.push(slot);
+            // The same codons under the sender's other cells.
+            self.slots.extend(cells.map(|cell| Slot { cell, ..slot }));
         }
         true
     }
@@ -236,6 +245,36 @@ mod tests {
         // A bad genome of a sender it needs files nothing.
         assert!(!inbox.file_by_sender(&head(&bad), |_| Some(7)));
         assert_eq!(inbox.len(), 2);
+    }
+
+    #[test]
+    fn a_gene_sent_ahead_is_filed_under_every_cell_of_its_sender_and_decoded_once() {
+        let mut inbox = Inbox::default();
+        let genes = [gene(5, 1, &[1, 1]), gene(5, 2, &[2]), gene(5, 3, &[3])];
+        let bytes = batch_bytes(5, geese_proto::net::AHEAD_CELL, &genes);
+        let cells_of = |from: AgentId| match from {
+            1 => &[7u32, 8, 9][..],
+            3 => &[8][..],
+            _ => &[][..],
+        };
+        assert!(inbox.file_by_sender(&head(&bytes), |from| cells_of(from).iter().copied()));
+        assert_eq!((inbox.len(), inbox.codons.len()), (4, 3), "sender 1's codons once");
+        let mut lent = Vec::new();
+        inbox.lend(5, |_| false, &mut lent);
+        let cells = CellGenes::new(lent);
+        let of = |c| cells.of(c).iter().map(|g| (g.from, g.genome.to_vec())).collect::<Vec<_>>();
+        assert_eq!(of(7), vec![(1, vec![1, 1])]);
+        assert_eq!(of(8), vec![(1, vec![1, 1]), (3, vec![3])]);
+        assert_eq!(of(9), vec![(1, vec![1, 1])]);
+        drop(cells);
+        // Kept past a retire that keeps a later step: each slot its own codons.
+        let later = batch_bytes(6, geese_proto::net::AHEAD_CELL, &[gene(6, 1, &[4, 4])]);
+        assert!(inbox.file_by_sender(&head(&later), |from| cells_of(from).iter().copied()));
+        inbox.retire(5);
+        let mut lent = Vec::new();
+        inbox.lend(6, |_| false, &mut lent);
+        let got: Vec<(u32, Vec<u32>)> = lent.iter().map(|(c, g)| (*c, g.genome.to_vec())).collect();
+        assert_eq!(got, vec![(7, vec![4, 4]), (8, vec![4, 4]), (9, vec![4, 4])]);
     }
 
     #[test]

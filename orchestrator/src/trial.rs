@@ -1,14 +1,16 @@
 //! One trial in one process: a world and N learners over the in-memory transport.
 //!
 //! This is the lock-step loop of DESIGN.md §2 with [`Mailboxes`] as the bus: percepts
-//! go to the cell of each live agent, genes to the cell they were published on, intents
+//! go to the cell of each live agent, genes to every cell their sender is registered in
+//! whose percept is read (at GS 2 an agent is registered in a 3×3 block), intents
 //! to the world, which resolves them in agent-id order. The distributed runtime drives the
 //! very same [`World`] and [`Learner`] code, which is why the two agree step for step.
 use crate::config::{task_name, RunSpec};
 use geese_agent::program::Member;
 use geese_agent::{GeneCache, Learner};
 use geese_proto::membus::Mailboxes;
-use geese_proto::{GeneMsg, Intent, StepReport};
+use geese_proto::rules::for_each_gene_cell;
+use geese_proto::{GeneMsg, Geometry, Intent, Percept, Pos, StepReport};
 use geese_world::World;
 use serde::{Deserialize, Serialize};
 
@@ -135,11 +137,11 @@ impl Trial {
                 percepts.binary_search_by_key(&c, |p| p.cell).ok()
             })
             .collect();
-        for (agent, cell) in self.agents.iter_mut().zip(&cells) {
+        for ((agent, cell), body) in self.agents.iter_mut().zip(&cells).zip(self.world.bodies()) {
             if let Some(pi) = cell {
                 let p = &percepts[*pi];
                 if let Some(g) = agent.begin_step(p) {
-                    self.genes.publish(p.cell, g);
+                    publish_gene(&mut self.genes, &geom, body.pos, &percepts, g);
                 }
             }
         }
@@ -165,6 +167,23 @@ impl Trial {
     }
 }
 
+/// Publish an agent's gene, offered from its centre `pos`, to every cell it must reach:
+/// each cell it is registered in whose percept a live agent reads (`percepts`, by
+/// cell), [`geese_proto::rules::for_each_gene_cell`]. At GS ≥ 3 that is its own cell.
+fn publish_gene(genes: &mut Mailboxes<GeneMsg>, geom: &Geometry, pos: Pos, percepts: &[Percept], g: GeneMsg) {
+    let read = |c| percepts.binary_search_by_key(&c, |p| p.cell).is_ok();
+    // Moved into the last cell, copied (the genome is shared) into the others.
+    let mut last = None;
+    for_each_gene_cell(geom, pos, read, |c| {
+        if let Some(prev) = last.replace(c) {
+            genes.publish(prev, g.clone());
+        }
+    });
+    if let Some(c) = last {
+        genes.publish(c, g);
+    }
+}
+
 /// Run a whole trial, calling `observe` after every step.
 pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result<Ran, SetupError> {
     let start = std::time::Instant::now();
@@ -176,4 +195,36 @@ pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result
     let mut summary = t.summary.clone();
     summary.wall_seconds = start.elapsed().as_secs_f64();
     Ok(Ran { summary, members: t.members() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::RunConfig;
+
+    /// At GS 2 an agent (radius 3) is registered in a 3×3 block of cells, so a neighbour
+    /// centred in the next cell is registered in the agent's own cell and shows in its
+    /// percept; lateral transfer takes its gene (REFERENCE §6.2), none is lost.
+    #[test]
+    fn at_gs_2_a_neighbour_centred_next_door_gives_its_gene() {
+        let mut cfg = RunConfig { steps: 1, seed: 11, ip: 1.0, ..Default::default() };
+        cfg.world.agents = 3;
+        cfg.world.grid = 2;
+        let mut t = Trial::new(&cfg.validate().expect("valid")).expect("world builds");
+        // 0 and 1 in neighbouring cells; 2 three cells away, registered in neither's.
+        let (a, b, far) = (Pos::new(0, 0), Pos::new(2, 0), Pos::new(-6, 0));
+        for (id, p) in [(0, a), (1, b), (2, far)] {
+            t.world.place_agent(id, p, 0.0);
+        }
+        let geom = t.world.geometry();
+        assert_ne!(geom.cell_of(a), geom.cell_of(b));
+        let percepts = t.world.percepts();
+        let mates = |c| percepts.iter().find(|p| p.cell == c).map(|p| p.agents.iter().map(|x| x.id).collect());
+        assert_eq!(mates(geom.cell_of(a)), Some(vec![0, 1]));
+        assert_eq!(mates(geom.cell_of(b)), Some(vec![0, 1]));
+        let rep = t.step();
+        assert_eq!(rep.genes_lost, 0);
+        // IP 1: agents 0 and 1 each keep both genes, agent 2 its own only.
+        assert_eq!((rep.lt_mean, rep.lt_std), (1.67, 0.47));
+    }
 }

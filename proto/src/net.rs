@@ -287,9 +287,10 @@ pub struct HostPercepts<'a> {
 /// intents. That removes a round trip through the world from every step: with 1,000
 /// agents in 10 processes, the gene exchange between percepts and intents cost each
 /// process ten more messages and every process a barrier per step. Which agent is in
-/// which cell at step `s` only the world knows; a receiver files each gene under the
-/// cell its sender's centre is in by its percepts of step `s`, and skips the others
-/// unread.
+/// which cell at step `s` only the world knows; a receiver files each gene under every
+/// cell of its own whose percept of step `s` lists the sender (the cells the sender is
+/// registered in: the cell of its centre at GS ≥ 3, up to nine at GS 2), and skips the
+/// others unread.
 pub const AHEAD_CELL: u32 = u32::MAX;
 
 /// What the world hands one hosting agent process on `agent/<ids>/in/genes`: the packs

@@ -8,8 +8,10 @@
 //! - the step length ([`speed`]) and the `Move` destination ([`destination`], §1.6);
 //! - the weight and capacity of an item ([`item_load`], §1.3);
 //! - IsSingleCarry ([`is_single_carry`], §2.4);
-//! - the final, type-aware drop rules ([`drop_rule`], §2.4).
-use crate::geometry::{step_destination, Geometry, Pos};
+//! - the final, type-aware drop rules ([`drop_rule`], §2.4);
+//! - the cells an agent's gene must reach ([`for_each_gene_cell`], §1.2 and §6.2): the
+//!   world's gene hub waits for it there, and agents send it there.
+use crate::geometry::{step_destination, CellIdx, Geometry, Pos};
 use crate::message::{ObjectInfo, ObjectKind};
 
 /// Radius of an agent's body (grid registration and look-ahead rays).
@@ -96,6 +98,39 @@ pub fn drop_rule(item: ObjectKind, has: impl Fn(ObjectKind) -> bool) -> DropOutc
     }
 }
 
+/// Whether an agent's gene must reach more than its own cell on this grid: whether an
+/// agent is registered in more than one cell (GS < [`AGENT_RADIUS`]; at GS 2 a 3×3
+/// block, REFERENCE §1.2). At GS ≥ 3 every agent is registered in its own cell only.
+pub fn genes_spread(geom: &Geometry) -> bool {
+    geom.reach(AGENT_RADIUS) > 0
+}
+
+/// The cells the gene of a live agent centred at `p` must reach at a step: every cell
+/// it is registered in (N(p, [`AGENT_RADIUS`])) whose percept some live agent reads,
+/// that is, where `read(c)` says a live agent has its centre. Calls `f` for each, in
+/// row-major order.
+///
+/// Why: lateral transfer takes the genes of every learning agent registered in the
+/// agent's own cell (REFERENCE §6.2), and a percept lists every agent registered in its
+/// cell, so every live agent whose centre is in a cell of N(p, r) expects this gene.
+/// Those are the only cells whose percepts are read. Agents all have the same radius,
+/// so the relation is symmetric: an agent is registered in the cell of another's
+/// centre exactly when the other is registered in the cell of its centre.
+///
+/// At GS ≥ [`AGENT_RADIUS`] that is the agent's own cell, read by the agent itself:
+/// `read` is not asked.
+pub fn for_each_gene_cell(geom: &Geometry, p: Pos, read: impl Fn(CellIdx) -> bool, mut f: impl FnMut(CellIdx)) {
+    if !genes_spread(geom) {
+        f(geom.cell_of(p));
+        return;
+    }
+    geom.for_each_neighbourhood_cell(p, AGENT_RADIUS, |c| {
+        if read(c) {
+            f(c);
+        }
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -135,6 +170,43 @@ mod tests {
         assert!(is_single_carry(&[light], &light));
         let heavy = ObjectInfo { weight: AGENT_CAPACITY, ..food };
         assert!(!is_single_carry(&[], &heavy));
+    }
+
+    #[test]
+    fn a_gene_reaches_the_read_cells_it_is_registered_in() {
+        let cells = |g: &Geometry, p: Pos, read: &dyn Fn(CellIdx) -> bool| {
+            let mut v = Vec::new();
+            for_each_gene_cell(g, p, read, |c| v.push(c));
+            v
+        };
+        // GS 10 (and 5, and 3): its own cell, whatever else is read.
+        for gs in [10, 5] {
+            let g = Geometry::new(100, 100, gs).unwrap();
+            assert!(!genes_spread(&g));
+            assert_eq!(cells(&g, Pos::new(3, -7), &|_| true), vec![g.cell_of(Pos::new(3, -7))]);
+        }
+        assert!(!genes_spread(&Geometry::new(60, 60, 3).unwrap()));
+        // GS 2: the read cells of its 3×3 block, clipped at the edge.
+        let g = Geometry::new(100, 100, 2).unwrap();
+        assert!(genes_spread(&g));
+        let p = Pos::new(0, 0);
+        let block = g.neighbourhood(p, AGENT_RADIUS);
+        assert_eq!(block.len(), 9);
+        assert_eq!(cells(&g, p, &|_| true), block);
+        let right = g.cell_of(Pos::new(2, 0));
+        let far = g.cell_of(Pos::new(6, 0));
+        assert_eq!(cells(&g, p, &|c| c == right || c == far || c == g.cell_of(p)), vec![g.cell_of(p), right]);
+        assert_eq!(cells(&g, Pos::new(-50, -50), &|_| true).len(), 4);
+        // Symmetric: a registered in b's centre cell exactly when b in a's.
+        for (a, b) in
+            [(Pos::new(0, 0), Pos::new(2, 2)), (Pos::new(0, 0), Pos::new(4, 0)), (Pos::new(-3, 1), Pos::new(-1, 3))]
+        {
+            assert_eq!(
+                g.registered_in(a, AGENT_RADIUS, g.cell_of(b)),
+                g.registered_in(b, AGENT_RADIUS, g.cell_of(a)),
+                "{a:?} {b:?}"
+            );
+        }
     }
 
     #[test]

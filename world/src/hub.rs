@@ -9,7 +9,8 @@ use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
     nested_size, pack, unpack, GeneBatch, GeneBatchCell, GeneBatchHead, HostGenes, Raw, AHEAD_CELL,
 };
-use geese_proto::{decode, encode, encode_sized, Geometry};
+use geese_proto::rules::{for_each_gene_cell, genes_spread};
+use geese_proto::{decode, encode, encode_sized, Geometry, Pos};
 use std::collections::HashMap;
 
 /// Maps keyed by cell, hashed with foldhash: the world fills and reads them for every
@@ -19,12 +20,67 @@ pub type CellMap<V> = HashMap<u32, V, foldhash::fast::FixedState>;
 /// Messages (key, bytes) to publish, in order.
 pub type Released = Vec<(String, Vec<u8>)>;
 
+/// The processes of one cell's gene exchange at a step.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CellPeers {
+    /// The processes that send the cell a batch, and whose batches complete it: those
+    /// with a live agent whose gene must reach the cell
+    /// ([`for_each_gene_cell`]), when an agent of another process reads it.
+    pub writers: Vec<AgentRange>,
+    /// The processes with a live agent centred in the cell: they read its percept, and
+    /// get its genes.
+    pub readers: Vec<AgentRange>,
+}
+
+/// The cells whose genes go through the hub at a step, given the live agents (their
+/// process and centre): the cells where a process reads genes of another's agents.
+///
+/// An agent's gene must reach every cell it is registered in where a live agent has its
+/// centre ([`for_each_gene_cell`], the rule agent processes send by). At GS ≥ 3 that is
+/// the cell of its centre only: the writers of a cell are its readers, and a cell is
+/// shared when agents of more than one process have their centres in it. At GS 2 an
+/// agent is registered in a 3×3 block: a process also writes to the cells next to its
+/// agents' that another process reads.
+pub fn shared_cells(geom: &Geometry, live: &[(AgentRange, Pos)]) -> CellMap<CellPeers> {
+    let add = |m: &mut CellMap<Vec<AgentRange>>, c: u32, r: AgentRange| {
+        let v = m.entry(c).or_default();
+        if !v.contains(&r) {
+            v.push(r);
+        }
+    };
+    let mut readers: CellMap<Vec<AgentRange>> = CellMap::default();
+    for &(r, p) in live {
+        add(&mut readers, geom.cell_of(p), r);
+    }
+    if !genes_spread(geom) {
+        return readers
+            .into_iter()
+            .filter(|(_, v)| v.len() > 1)
+            .map(|(c, v)| (c, CellPeers { writers: v.clone(), readers: v }))
+            .collect();
+    }
+    let mut writers: CellMap<Vec<AgentRange>> = CellMap::default();
+    for &(r, p) in live {
+        for_each_gene_cell(geom, p, |c| readers.contains_key(&c), |c| add(&mut writers, c, r));
+    }
+    writers
+        .into_iter()
+        .filter_map(|(c, w)| {
+            let readers = readers.get(&c)?;
+            // A process sends a cell its genes only for readers of another process.
+            let writers: Vec<AgentRange> = w.into_iter().filter(|x| readers.iter().any(|y| y != x)).collect();
+            (!writers.is_empty()).then(|| (c, CellPeers { writers, readers: readers.clone() }))
+        })
+        .collect()
+}
+
 /// Per-cell gene aggregation (DESIGN.md §2 step 2). Agent processes publish their
 /// batches of the shared cells of a step as one packed bundle on `agent/<ids>/genes`;
-/// once every process with an agent centred in a cell has spoken (or left), the cell is
+/// once every process expected in a cell has spoken (or left) — every process with a
+/// live agent registered in it ([`CellPeers::writers`], [`shared_cells`]) — the cell is
 /// complete. Then a process that reads cells one by one gets the cell's genes as one
 /// batch on `cell/<cx>/<cy>/genes`. A hosting process gets the packs of the other
-/// processes it shares a cell with as they arrive, and then which cells are complete,
+/// processes that write to a cell it reads as they arrive, and then which cells are complete,
 /// in [`HostGenes`] messages on `agent/<ids>/in/genes` (built by [`GeneHub::flush`],
 /// which the shell's publisher calls each time it wakes).
 ///
@@ -58,12 +114,13 @@ pub struct GeneHub {
 }
 
 struct CellAgg {
+    /// The processes whose batches complete the cell ([`CellPeers::writers`]).
     expect: Vec<AgentRange>,
     /// Each process's batch, nested as it sent it (checked, never decoded here unless
     /// some process reads this cell's topic; only then are its bytes kept).
     got: Vec<(AgentRange, Vec<u8>)>,
     sent: bool,
-    /// The hosting processes sharing the cell.
+    /// The hosting processes that read the cell.
     hosting: Vec<AgentRange>,
 }
 
@@ -100,9 +157,9 @@ impl GeneHub {
         std::mem::take(&mut self.hostile)
     }
 
-    /// Open step `step`: `cells` are the shared cells with the processes centred in
-    /// each; `hosting` the processes served with [`HostGenes`].
-    pub fn begin(&mut self, step: u64, cells: CellMap<Vec<AgentRange>>, per_cell: bool, hosting: &[AgentRange]) {
+    /// Open step `step`: `cells` are the shared cells with the processes that write and
+    /// read each ([`shared_cells`]); `hosting` the processes served with [`HostGenes`].
+    pub fn begin(&mut self, step: u64, cells: CellMap<CellPeers>, per_cell: bool, hosting: &[AgentRange]) {
         self.step = step;
         self.begun = step;
         self.per_cell = per_cell;
@@ -111,12 +168,12 @@ impl GeneHub {
         self.packs.clear();
         self.cells = cells
             .into_iter()
-            .map(|(c, expect)| {
-                let hosting: Vec<AgentRange> = expect.iter().filter(|r| hosting.contains(r)).copied().collect();
+            .map(|(c, peers)| {
+                let hosting: Vec<AgentRange> = peers.readers.iter().filter(|r| hosting.contains(r)).copied().collect();
                 for r in &hosting {
                     self.hosts.entry(*r).or_default();
                 }
-                (c, CellAgg { expect, got: Vec::new(), sent: false, hosting })
+                (c, CellAgg { expect: peers.writers, got: Vec::new(), sent: false, hosting })
             })
             .collect();
     }
@@ -248,7 +305,7 @@ impl GeneHub {
     }
 
     /// Queue the taken batches of `from` (cell, encoding) for the hosting processes that
-    /// share one of their cells, at once rather than when the cells are complete: as
+    /// read one of their cells, at once rather than when the cells are complete: as
     /// `packed`, the pack they came in, when given, else packed here.
     fn forward(&mut self, from: AgentRange, kept: &[(u32, Raw)], packed: Option<&[u8]>) {
         let mut to: Vec<AgentRange> = Vec::new();
@@ -388,10 +445,15 @@ mod tests {
         keys::agents_genes(RUN, from)
     }
 
+    /// Both write and read.
+    fn peers(v: Vec<AgentRange>) -> CellPeers {
+        CellPeers { writers: v.clone(), readers: v }
+    }
+
     /// Step `step` with cell 5 shared by processes a and b, both hosting.
     fn open(hub: &mut GeneHub, step: u64, a: AgentRange, b: AgentRange) {
         let mut cells = CellMap::default();
-        cells.insert(5, vec![a, b]);
+        cells.insert(5, peers(vec![a, b]));
         hub.begin(step, cells, false, &[a, b]);
     }
 
@@ -465,7 +527,7 @@ mod tests {
         let (a, b) = (r(0, 2), r(2, 2));
         let mut hub = GeneHub::new(RUN, geom());
         let mut cells = CellMap::default();
-        cells.insert(5, vec![b, a]);
+        cells.insert(5, peers(vec![b, a]));
         hub.begin(1, cells, true, &[]);
         hub.on_bundle(&key(b), &bundle(1, &[(5, vec![gene(3, 1), gene(2, 1)])]));
         let out = hub.on_bundle(&key(a), &bundle(1, &[(5, vec![gene(1, 1)])]));
@@ -474,6 +536,58 @@ mod tests {
         assert_eq!(out[0].0, keys::cell_genes(RUN, cx, cy));
         let all: GeneBatch = decode(&out[0].1).unwrap();
         assert_eq!(all.genes.iter().map(|g| g.from).collect::<Vec<_>>(), vec![1, 2, 3]);
+    }
+
+    #[test]
+    fn shared_cells_are_those_of_centres_at_gs_10_and_of_blocks_at_gs_2() {
+        let (a, b, c) = (r(0, 2), r(2, 2), r(4, 2));
+        // GS 10: two processes centred in one cell share it; a neighbour does not count.
+        let g = geom();
+        let live = [(a, Pos::new(1, 1)), (b, Pos::new(8, 8)), (c, Pos::new(11, 1)), (a, Pos::new(12, 1))];
+        let cells = shared_cells(&g, &live);
+        let (here, next) = (g.cell_of(Pos::new(1, 1)), g.cell_of(Pos::new(11, 1)));
+        assert_eq!(cells.len(), 2);
+        assert_eq!(cells[&here], peers(vec![a, b]));
+        assert_eq!(cells[&next], peers(vec![c, a]));
+        // GS 2: a at (0,0), b centred in the next cell, c two cells further (in the
+        // block of b's agent, not of a's), and a's second agent far away.
+        let g = Geometry::new(100, 100, 2).unwrap();
+        let live = [(a, Pos::new(0, 0)), (b, Pos::new(2, 0)), (c, Pos::new(4, 0)), (a, Pos::new(-20, 0))];
+        let cells = shared_cells(&g, &live);
+        let at = |x| g.cell_of(Pos::new(x, 0));
+        // A process writes to a cell only for readers of another process.
+        let peers_at = |x| cells[&at(x)].clone().sorted();
+        assert_eq!(peers_at(0), CellPeers { writers: vec![b], readers: vec![a] });
+        assert_eq!(peers_at(2), CellPeers { writers: vec![a, c], readers: vec![b] });
+        assert_eq!(peers_at(4), CellPeers { writers: vec![b], readers: vec![c] });
+        assert_eq!(cells.len(), 3, "the cell of a's far agent has nobody else");
+    }
+
+    impl CellPeers {
+        fn sorted(mut self) -> Self {
+            self.writers.sort();
+            self.readers.sort();
+            self
+        }
+    }
+
+    #[test]
+    fn at_gs_2_a_process_writes_to_a_cell_it_does_not_read_and_completes_it() {
+        let (a, b) = (r(0, 2), r(2, 2));
+        let g = Geometry::new(100, 100, 2).unwrap();
+        let (pa, pb) = (Pos::new(0, 0), Pos::new(2, 0));
+        let (ca, cb) = (g.cell_of(pa), g.cell_of(pb));
+        let mut hub = GeneHub::new(RUN, g);
+        hub.begin(3, shared_cells(&g, &[(a, pa), (b, pb)]), false, &[a, b]);
+        // b's gene goes to a's cell (and its own, which only b reads: no batch there).
+        let mut out = hub.on_bundle(&key(b), &bundle(3, &[(ca, vec![gene(2, 3)])]));
+        hub.flush(&mut out);
+        assert_eq!(host_genes(&out, a), vec![(vec![ca], 1)], "a's cell is complete with b's batch");
+        assert!(host_genes(&out, b).is_empty(), "b reads no cell that a pack came for");
+        let mut out = hub.on_bundle(&key(a), &bundle(3, &[(cb, vec![gene(0, 3)])]));
+        hub.flush(&mut out);
+        assert_eq!(host_genes(&out, b), vec![(vec![cb], 1)]);
+        assert_eq!(hub.close(), 0);
     }
 
     #[test]

@@ -20,7 +20,7 @@
 //! 3. wait until every expected agent answered, or the intent deadline;
 //! 4. drop intents by the injected loss, resolve the step, publish the report.
 use crate::gather::Gather;
-use crate::hub::{CellMap, GeneHub, Released};
+use crate::hub::{shared_cells, CellMap, GeneHub, Released};
 use crate::{ConfigError, World, WorldConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
@@ -420,7 +420,7 @@ impl Server {
         // Otherwise they go through the hub, as processes publish them during the step.
         let mut ahead = !self.spec.bare && !per_cell && !hosting.is_empty() && self.world.regime().lateral_transfer;
         let mut ahead_packs: Vec<(AgentRange, Vec<u8>)> = Vec::new();
-        // The hosting processes each process shares a cell with.
+        // The hosting processes whose genes each process reads.
         let mut partners: HashMap<AgentRange, Vec<AgentRange>> = HashMap::new();
         let hosts: Vec<AgentRange> = self.hosts.keys().copied().collect();
         // Open the gathering before anything goes out: fast answers must find it open.
@@ -430,27 +430,26 @@ impl Server {
             self.gather.begin(step, |i| if bare { hosts.iter().any(|r| r.contains(i as u32)) } else { bodies[i].live });
         }
         if !self.spec.bare {
-            // Cells whose centred live agents belong to more than one process: their genes
-            // go through the hub (lateral transfer on only).
-            let mut shared: CellMap<Vec<AgentRange>> = CellMap::default();
+            // Cells where a process reads genes of another process's agents: they go
+            // through the hub (lateral transfer on only). At GS ≥ 3 the cells whose
+            // centred live agents belong to more than one process; at GS 2 also those
+            // next to them ([`shared_cells`]).
+            let mut shared = CellMap::default();
             if self.world.regime().lateral_transfer {
-                let g = self.world.geometry();
                 // Bodies come in id order and a process speaks for contiguous ids, so a
                 // body's process is mostly the previous body's (the first in order that
                 // contains its id, either way).
                 let mut owner: Option<AgentRange> = None;
+                let mut live: Vec<(AgentRange, geese_proto::Pos)> = Vec::with_capacity(self.n);
                 for b in self.world.bodies().iter().filter(|b| b.live) {
                     if !owner.is_some_and(|r| r.contains(b.id)) {
                         owner = hosts.iter().find(|r| r.contains(b.id)).copied();
                     }
                     if let Some(r) = owner {
-                        let v = shared.entry(g.cell_of(b.pos)).or_default();
-                        if !v.contains(&r) {
-                            v.push(r);
-                        }
+                        live.push((r, b.pos));
                     }
                 }
-                shared.retain(|_, v| v.len() > 1);
+                shared = shared_cells(&self.world.geometry(), &live);
             }
             let packs = self.hub.take_ahead(step);
             // From every process with a live agent (one without takes no part).
@@ -458,10 +457,10 @@ impl Server {
             let takes_part = |h: &AgentRange| h.ids().any(|id| bodies.get(id as usize).is_some_and(|b| b.live));
             ahead &= hosting.iter().filter(|h| takes_part(h)).all(|h| packs.iter().any(|(from, _)| from == h));
             if ahead {
-                for ranges in shared.values() {
-                    for a in ranges {
+                for peers in shared.values() {
+                    for a in &peers.readers {
                         let p = partners.entry(*a).or_default();
-                        for b in ranges {
+                        for b in &peers.writers {
                             if b != a && !p.contains(b) {
                                 p.push(*b);
                             }

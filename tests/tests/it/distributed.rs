@@ -41,6 +41,21 @@ pub(crate) fn config(agents: u32, steps: u64, seed: u64, layout: Layout) -> RunC
     c
 }
 
+/// `agents` agents at random places on a 40×40 arena in cells of 2 (400 cells). An
+/// agent (radius 3) is registered in a 3×3 block of cells (REFERENCE §1.2), so its
+/// cell-mates are mostly centred in the cells next to its own, and their genes must
+/// reach it there.
+pub(crate) fn gs2(agents: u32, steps: u64, seed: u64) -> RunConfig {
+    let mut c = config(agents, steps, seed, Layout::Reference);
+    c.world.width = 40;
+    c.world.height = 40;
+    c.world.grid = 2;
+    c.world.site = geese_proto::Pos::new(10, 10);
+    c.world.site_distance = 15;
+    c.world.boundary_distance = 15;
+    c
+}
+
 /// 24 agents in small cells (they change cell often), with perturbations that add
 /// obstacles, kill a quarter of the agents, lower IP and switch lateral transfer off
 /// and on again.
@@ -156,6 +171,29 @@ fn hosted_agents_and_perturbations_equal_in_process() {
     assert!(got_wide.iter().all(|r| r.net.genes_ahead == 0), "genes went ahead past a per-cell reader");
     assert_all_gone(&pids);
     assert_all_gone(&pids_wide);
+}
+
+#[test]
+fn at_gs_2_a_zenoh_run_equals_in_process_and_loses_no_gene() {
+    let _one_at_a_time = serial();
+    // Cells of 2: an agent's cell-mates are mostly centred in the cells next to its own,
+    // and their genes reach it there, across processes (see `gs2`).
+    let cfg = gs2(30, 150, 6);
+    let expected = in_process(&cfg);
+    assert!(expected.iter().all(|r| r.genes_lost == 0));
+    // Hosting processes (genes sent ahead), then a process that reads its cells one by
+    // one among them (genes through the world during the step).
+    for subscribe in ["all", "all,cells"] {
+        let mut opts = options(3, Some(10));
+        opts.subscribe = Some(subscribe.into());
+        let (got, pids) = distributed(&cfg, &opts);
+        assert_eq!(expected, step_reports(&got), "--subscribe {subscribe}");
+        assert!(got.iter().all(|r| r.report.genes_lost == 0));
+        assert_eq!(got.iter().map(|r| r.net.genes_late + r.net.deadline_hits + r.net.hostile).sum::<u32>(), 0);
+        let ahead = got.iter().filter(|r| r.net.genes_ahead == 3).count();
+        assert_eq!(ahead, if subscribe == "all" { 149 } else { 0 }, "--subscribe {subscribe}");
+        assert_all_gone(&pids);
+    }
 }
 
 #[test]

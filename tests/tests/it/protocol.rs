@@ -5,7 +5,7 @@
 //!
 //! Time is a value here: a stall shows as a wait that nothing ends, and the router
 //! fails the test rather than sleeping.
-use super::distributed::{config, in_process, perturbed};
+use super::distributed::{config, gs2, in_process, perturbed};
 use geese_agent::host::{Host, Input, Next as HostNext, Out};
 use geese_orchestrator::config::RunConfig;
 use geese_orchestrator::launch::{net_spec, NetOptions};
@@ -259,6 +259,42 @@ fn loss_is_the_same_whichever_way_genes_travel() {
     assert!(lost(&ahead) > 100);
     assert_eq!(lost(&ahead), lost(&during));
     assert_eq!(reports(&ahead.reports), reports(&during.reports));
+}
+
+#[test]
+fn at_gs_2_genes_reach_cell_mates_centred_next_door_whichever_way_they_travel() {
+    // An agent is registered in a 3×3 block of cells: its gene goes to every cell of the
+    // block where a live agent has its centre, through the world when that agent is of
+    // another process (REFERENCE §6.2: lateral transfer takes every learning agent
+    // registered in the cell). None is lost, and the trajectory is the in-process one.
+    let cfg = gs2(30, 150, 6);
+    let expected = in_process(&cfg);
+    assert!(expected.iter().all(|r| r.genes_lost == 0));
+    assert!(expected.iter().map(|r| r.lt_mean).sum::<f64>() > 0.0, "no lateral transfer to compare");
+    // Hosting processes (genes ahead from step 2 on), then cell readers and hosting
+    // processes mixed (genes during the step, per cell and per process).
+    for narrow in [&[][..], &[true, false, true][..]] {
+        let mut net = Net::new(&cfg, 10, narrow, LossRates::default());
+        net.run(false);
+        assert_eq!(net.finished, Some(true));
+        assert_eq!(expected, reports(&net.reports), "narrow {narrow:?}");
+        let ahead = net.reports.iter().skip(1).all(|r| r.net.genes_ahead == 3);
+        assert_eq!(ahead, narrow.is_empty());
+        assert!(net.reports.iter().all(|r| r.net.hostile
+            + r.net.intents_late
+            + r.net.genes_late
+            + r.net.deadline_hits
+            == 0));
+    }
+    // Under loss, an agent whose percept is dropped offers no gene in any of its cells.
+    let loss = LossRates { intent: 0.1, percept: 0.2 };
+    let mut ahead = Net::new(&cfg, 10, &[], loss);
+    ahead.run(false);
+    let mut during = Net::new(&cfg, 10, &[false, true], loss);
+    during.run(false);
+    assert!(ahead.reports.iter().map(|r| r.net.percepts_lost).sum::<u32>() > 100);
+    assert_eq!(reports(&ahead.reports), reports(&during.reports));
+    assert!(during.reports.iter().all(|r| r.net.genes_late + r.net.deadline_hits == 0));
 }
 
 #[test]
