@@ -220,6 +220,7 @@ enum Kind {
 }
 
 /// The GE parameters a learner of this kind uses.
+#[inline(always)]
 fn params<'a>(cfg: &'a LearnerConfig, kind: &Kind) -> &'a GeParams {
     match kind {
         Kind::Combine(_) => &cfg.combine_ge,
@@ -544,7 +545,8 @@ impl Learner {
             _ => Triggers::Storage,
         });
         let mut gene = gene;
-        let gene_d = gene.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0);
+        // A random individual's fitness is its D (fixed agents have none).
+        let gene_d = if gene.fitness.is_finite() { gene.fitness } else { 0.0 };
         gene.fitness = match cfg.fitness {
             FitnessVariant::Code => 0.0,
             FitnessVariant::Paper => gene_d,
@@ -718,8 +720,13 @@ impl Learner {
 
     /// The running fitness after this tick (REFERENCE §6.5, §6.7): carry-over plus the
     /// terms in force.
+    #[inline]
     fn fitness_now(&self, explore: f64) -> f64 {
         let t = self.terms;
+        if t == FitnessTerms::BETR && self.cfg.fitness == FitnessVariant::Code {
+            // BeTr-GEESE and Multi-GEESE as the reference code computes them.
+            return self.cfg.carry_over * self.carry + explore + self.tree.successful_selectors() as f64;
+        }
         let mut a = match self.cfg.fitness {
             FitnessVariant::Code => self.cfg.carry_over * self.carry,
             FitnessVariant::Paper => self.cfg.carry_over * self.gene.fitness,
@@ -883,7 +890,11 @@ impl Learner {
             return;
         };
         self.carry = self.gene.fitness;
-        self.gene_d = winner.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0);
+        // D of the adopted phenotype, only where a formula reads it: parsing every
+        // adopted phenotype for it cost a fifth of a BeTr-GEESE run's instructions.
+        if self.terms.d || self.cfg.fitness == FitnessVariant::Paper {
+            self.gene_d = winner.phenotype.as_deref().map(ge::diversity).unwrap_or(0.0);
+        }
         winner.fitness = match self.cfg.fitness {
             FitnessVariant::Code => 0.0,
             FitnessVariant::Paper => self.gene_d,
