@@ -779,7 +779,8 @@ mod tests {
         let mut n = 0;
         s.for_each_learning_pct(|_, _, _| n += 1).unwrap();
         assert_eq!(n, 0);
-        assert_eq!(crate::report::build(&s, &Default::default()).unwrap().points.len(), 1);
+        let r = crate::report::build(&s, &Default::default()).unwrap();
+        assert!(r.points[0].ms_per_step.is_none() && r.conditions[0].ms_per_step.is_none());
         let files = s.export_csv(&dir.join("csv")).unwrap();
         assert!(files.iter().any(|f| f.ends_with("learning_steps.csv")));
         let trials = std::fs::read_to_string(dir.join("csv/trials.csv")).unwrap();
