@@ -440,12 +440,15 @@ pub trait TrialRunner: Sync {
 /// Run `spec` and the stages that follow it ([`crate::config::FollowUp`]: a Multi-GEESE
 /// combine phase after its collect phase, the fixed test of a learned population);
 /// `observe` sees the last stage's steps, `stage_done` every stage with the population
-/// it ended with. Returns the last stage.
+/// it ended with, and `learned` the task % per step, `(step, task %)`, of the learning
+/// stage whose population a fixed test runs (Fig. 8a's curves; with a cache, also when
+/// the stage was run by another trial). Returns the last stage.
 pub fn run_stages(
     runner: &dyn TrialRunner,
     spec: &RunSpec,
     observe: &mut dyn FnMut(&StepReport),
     stage_done: &mut dyn FnMut(&RunSpec, &Ran, &geese_agent::Population),
+    learned: &mut dyn FnMut(&[StepPct]),
     cache: Option<&StageCache>,
 ) -> Result<Ran, TrialError> {
     let mut cur = spec.clone();
@@ -458,23 +461,44 @@ pub fn run_stages(
         }
         let key = cache.map(|_| StageCache::key(&cur));
         let cached = cache.zip(key.as_ref()).and_then(|(c, k)| c.get(k));
-        let pop = match cached {
-            Some(pop) => pop,
+        let stage = match cached {
+            Some(stage) => stage,
             None => {
-                let ran = runner.run(&cur, &mut |_| {})?;
+                let tested = cur.follow_up == crate::config::FollowUp::FixedTest;
+                let mut curve = Vec::new();
+                let ran = runner.run(&cur, &mut |r| {
+                    if tested {
+                        curve.push((r.step, r.task_pct));
+                    }
+                })?;
                 let pop = cur.population(ran.members.clone());
                 stage_done(&cur, &ran, &pop);
+                let stage = CachedStage { pop, curve: Arc::new(curve) };
                 if let (Some(c), Some(k)) = (cache, key) {
-                    c.put(k, pop.clone());
+                    c.put(k, stage.clone());
                 }
-                pop
+                stage
             }
         };
-        match cur.next_stage(&pop)? {
+        if cur.follow_up == crate::config::FollowUp::FixedTest {
+            learned(&stage.curve);
+        }
+        match cur.next_stage(&stage.pop)? {
             Some(next) => cur = next,
             None => return Err("a stage with a follow-up had none".into()),
         }
     }
+}
+
+/// A step and the task % after it.
+pub type StepPct = (u64, f64);
+
+/// A stage's result as the cache keeps it: the population it ended with and, for a
+/// stage a fixed test follows, its task % per step.
+#[derive(Clone)]
+struct CachedStage {
+    pop: geese_agent::Population,
+    curve: Arc<Vec<StepPct>>,
 }
 
 /// The populations a campaign's learning stages ended with, by stage configuration:
@@ -482,7 +506,7 @@ pub fn run_stages(
 /// sizes) learn it once. A learning stage's result depends on its configuration alone.
 #[derive(Default)]
 pub struct StageCache {
-    pops: std::sync::Mutex<std::collections::HashMap<String, geese_agent::Population>>,
+    pops: std::sync::Mutex<std::collections::HashMap<String, CachedStage>>,
 }
 
 impl StageCache {
@@ -494,12 +518,12 @@ impl StageCache {
         let program = serde_json::to_string(&*spec.program).unwrap_or_default();
         format!("{}|{}|{}", spec.stage, serde_json::to_string(&c).unwrap_or_default(), program)
     }
-    fn get(&self, key: &str) -> Option<geese_agent::Population> {
+    fn get(&self, key: &str) -> Option<CachedStage> {
         self.pops.lock().ok()?.get(key).cloned()
     }
-    fn put(&self, key: String, pop: geese_agent::Population) {
+    fn put(&self, key: String, stage: CachedStage) {
         if let Ok(mut m) = self.pops.lock() {
-            m.insert(key, pop);
+            m.insert(key, stage);
         }
     }
 }
@@ -651,15 +675,21 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64, cache: &StageC
     let theta = spec.config.threshold;
     let mut rows: Vec<StepReport> = Vec::new();
     let mut series: Vec<f64> = Vec::with_capacity(steps as usize);
+    let mut learning_rows: Vec<StepPct> = Vec::new();
     let started = std::time::Instant::now();
     let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let keep = |step: u64, last: u64| step.is_multiple_of(stride) || step == last;
         let mut observe = |rep: &StepReport| {
             series.push(rep.task_pct);
-            if rep.step.is_multiple_of(stride) || rep.step == steps {
+            if keep(rep.step, steps) {
                 rows.push(rep.clone());
             }
         };
-        run_stages(runner, spec, &mut observe, &mut |_, _, _| {}, Some(cache)).map(|r| r.summary)
+        let mut learned = |curve: &[StepPct]| {
+            let last = curve.last().map_or(0, |r| r.0);
+            learning_rows = curve.iter().copied().filter(|r| keep(r.0, last)).collect();
+        };
+        run_stages(runner, spec, &mut observe, &mut |_, _, _| {}, &mut learned, Some(cache)).map(|r| r.summary)
     }));
     let wall = started.elapsed().as_secs_f64();
     let error = match r {
@@ -673,6 +703,7 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64, cache: &StageC
                     rows,
                     error: None,
                     wall_seconds: wall,
+                    learning_rows,
                 });
             }
         }
@@ -693,6 +724,7 @@ fn run_one(runner: &dyn TrialRunner, spec: &RunSpec, stride: u64, cache: &StageC
         rows: Vec::new(),
         error,
         wall_seconds: wall,
+        learning_rows: Vec::new(),
     })
 }
 

@@ -1,11 +1,17 @@
 //! Figures with plotters, each written as PNG and SVG: learning curves (median and
 //! inter-quartile band), Fig.-6/10-style scatters of per-trial power and efficiency with
-//! the fitted line, and Fig.-4-style box plots.
+//! the fitted line, and Fig.-4/8b/9b-style box plots.
+//!
+//! Tick labels of the level axes are written one word per line (a condition's label
+//! `algorithm=geese-bt terms=E+C+F` takes one line per knob), and a figure is made wide
+//! enough for its longest line, so long text levels stay readable.
 //!
 //! Text uses DejaVu Sans shipped inside the `dejavu` crate and registered from bytes
 //! (plotters' `ab_glyph` feature), so no system font is needed.
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
@@ -44,6 +50,47 @@ pub struct ScatterPanel {
 pub struct BoxGroup {
     pub label: String,
     pub boxes: Vec<Vec<f64>>,
+}
+
+/// The value axis of a box plot.
+#[derive(Clone, Debug)]
+pub struct BoxAxis {
+    pub label: String,
+    pub range: (f64, f64),
+}
+
+impl BoxAxis {
+    /// Final task % on 0–100.
+    pub fn task_pct() -> BoxAxis {
+        BoxAxis { label: "final task %".into(), range: (0.0, 100.0) }
+    }
+}
+
+/// A corner of the plot the boxes leave free for the legend: on the right if the
+/// rightmost group's values all lie in one half of the range (the other half then is
+/// free), else on the left if the leftmost group's do, else upper right.
+fn legend_corner(groups: &[BoxGroup], (y0, y1): (f64, f64)) -> SeriesLabelPosition {
+    let mid = (y0 + y1) / 2.0;
+    // Some(true): every value in the lower half; Some(false): every one in the upper.
+    let half = |g: Option<&BoxGroup>| -> Option<bool> {
+        let v: Vec<f64> = g?.boxes.iter().flatten().copied().collect();
+        if v.is_empty() {
+            None
+        } else if v.iter().all(|&x| x <= mid) {
+            Some(true)
+        } else if v.iter().all(|&x| x >= mid) {
+            Some(false)
+        } else {
+            None
+        }
+    };
+    match (half(groups.last()), half(groups.first())) {
+        (Some(true), _) => SeriesLabelPosition::UpperRight,
+        (Some(false), _) => SeriesLabelPosition::LowerRight,
+        (None, Some(true)) => SeriesLabelPosition::UpperLeft,
+        (None, Some(false)) => SeriesLabelPosition::LowerLeft,
+        (None, None) => SeriesLabelPosition::UpperRight,
+    }
 }
 
 const FONT: &str = "sans-serif";
@@ -331,8 +378,15 @@ fn draw_curves<DB: DrawingBackend>(
 
 /// Per-trial points against x position, with the least-squares line, one panel each.
 pub fn scatter(stem: &Path, title: &str, panels: &[ScatterPanel], x_label: &str) -> Result<Vec<PathBuf>, PlotError> {
-    let w = 560 * panels.len().max(1) as u32;
-    both(stem, (w, 560), |r| draw_scatter(r, title, panels, x_label), |r| draw_scatter(r, title, panels, x_label))
+    let panel_w = panels
+        .iter()
+        .map(|p| 100 + p.ticks.len().max(1) as u32 * (tick_width(&p.ticks) + 16).max(60))
+        .max()
+        .unwrap_or(0)
+        .clamp(560, 3000);
+    let h = 500 + panels.iter().map(|p| x_label_area(&p.ticks)).max().unwrap_or(0);
+    let w = panel_w * panels.len().max(1) as u32;
+    both(stem, (w, h), |r| draw_scatter(r, title, panels, x_label), |r| draw_scatter(r, title, panels, x_label))
 }
 
 /// Deterministic horizontal jitter in [−0.15, 0.15] for the i-th point.
@@ -340,8 +394,45 @@ fn jitter(i: usize) -> f64 {
     ((i as f64 * 0.618_033_988_75).fract() - 0.5) * 0.3
 }
 
-fn tick_label(ticks: &[(f64, String)], x: f64) -> String {
-    ticks.iter().find(|(p, _)| (p - x).abs() < 1e-6).map(|(_, l)| l.clone()).unwrap_or_default()
+/// Font size of tick labels, and the height of one of their lines.
+const TICK_FONT: f64 = 14.0;
+const TICK_LINE: i32 = 18;
+
+/// A tick label's lines: one per word.
+fn tick_lines(label: &str) -> Vec<&str> {
+    label.split_whitespace().collect()
+}
+
+/// Width in pixels of the longest tick-label line, estimated before anything is drawn
+/// (DejaVu Sans averages about 0.6 em per character).
+fn tick_width(ticks: &[(f64, String)]) -> u32 {
+    let chars = ticks.iter().flat_map(|(_, l)| tick_lines(l)).map(|l| l.chars().count()).max().unwrap_or(0);
+    (chars as f64 * TICK_FONT * 0.62).ceil() as u32
+}
+
+/// Height of the x label area: the tick lines, then the axis description.
+fn x_label_area(ticks: &[(f64, String)]) -> u32 {
+    let lines = ticks.iter().map(|(_, l)| tick_lines(l).len()).max().unwrap_or(1).max(1) as u32;
+    14 + lines * TICK_LINE as u32 + 26
+}
+
+/// Write the tick labels under the x axis of `chart`, one word per line, centred on
+/// their positions (the mesh draws the ticks without text).
+fn draw_ticks<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    chart: &ChartContext<DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    ticks: &[(f64, String)],
+) -> Drawn {
+    let y0 = chart.y_range().start;
+    let base = root.get_base_pixel();
+    let style = TextStyle::from((FONT, TICK_FONT)).pos(Pos::new(HPos::Center, VPos::Top));
+    for (x, label) in ticks {
+        let (px, py) = chart.backend_coord(&(*x, y0));
+        for (i, line) in tick_lines(label).iter().enumerate() {
+            root.draw_text(line, &style, (px - base.0, py - base.1 + 10 + i as i32 * TICK_LINE)).map_err(s)?;
+        }
+    }
+    Ok(())
 }
 
 fn draw_scatter<DB: DrawingBackend>(
@@ -359,15 +450,14 @@ fn draw_scatter<DB: DrawingBackend>(
         let mut chart = ChartBuilder::on(&area)
             .caption(&p.title, (FONT, 16))
             .margin(12)
-            .x_label_area_size(45)
+            .x_label_area_size(x_label_area(&p.ticks))
             .y_label_area_size(55)
             .build_cartesian_2d(0.5f64..k + 0.5, (lo - pad)..(hi + pad))
             .map_err(s)?;
-        let fmt = |x: &f64| tick_label(&p.ticks, *x);
         chart
             .configure_mesh()
             .x_labels(p.ticks.len() * 2 + 1)
-            .x_label_formatter(&fmt)
+            .x_label_formatter(&|_| String::new())
             .y_label_formatter(&|v| format!("{v:.0}"))
             .x_desc(x_label)
             .y_desc(&p.y_label)
@@ -392,26 +482,48 @@ fn draw_scatter<DB: DrawingBackend>(
                 ))
                 .map_err(s)?;
         }
+        draw_ticks(&area, &chart, &p.ticks)?;
     }
     Ok(())
 }
 
 /// Box plots (Matplotlib style: box = quartiles, line = median, whiskers to the
 /// farthest point within 1.5 IQR, points beyond drawn as fliers).
+/// `series` names the boxes of each group, in order (the legend); `axis` is the value
+/// axis.
 pub fn boxes(
     stem: &Path,
     title: &str,
     groups: &[BoxGroup],
     series: &[String],
     x_label: &str,
+    axis: &BoxAxis,
 ) -> Result<Vec<PathBuf>, PlotError> {
-    let w = (200 + 90 * groups.len() * series.len().max(1)).clamp(700, 1600) as u32;
+    let ticks = box_ticks(groups);
+    let slot = (90 * series.len().max(1) as u32).max(tick_width(&ticks) + 20);
+    let w = (200 + slot * groups.len().max(1) as u32).clamp(700, 4000);
+    let h = 500 + x_label_area(&ticks);
     both(
         stem,
-        (w, 560),
-        |r| draw_boxes(r, title, groups, series, x_label),
-        |r| draw_boxes(r, title, groups, series, x_label),
+        (w, h),
+        |r| draw_boxes(r, title, groups, series, x_label, axis),
+        |r| draw_boxes(r, title, groups, series, x_label, axis),
     )
+}
+
+fn box_ticks(groups: &[BoxGroup]) -> Vec<(f64, String)> {
+    groups.iter().enumerate().map(|(i, g)| (i as f64 + 1.0, g.label.clone())).collect()
+}
+
+/// Y-axis tick text with as many decimals as the range needs.
+fn value_label(v: f64, span: f64) -> String {
+    if span >= 20.0 {
+        format!("{v:.0}")
+    } else if span >= 2.0 {
+        format!("{v:.1}")
+    } else {
+        format!("{v:.3}")
+    }
 }
 
 fn draw_boxes<DB: DrawingBackend>(
@@ -420,24 +532,25 @@ fn draw_boxes<DB: DrawingBackend>(
     groups: &[BoxGroup],
     series: &[String],
     x_label: &str,
+    axis: &BoxAxis,
 ) -> Drawn {
     let k = groups.len().max(1) as f64;
-    let ticks: Vec<(f64, String)> = groups.iter().enumerate().map(|(i, g)| (i as f64 + 1.0, g.label.clone())).collect();
+    let ticks = box_ticks(groups);
+    let (y0, y1) = axis.range;
     let mut chart = ChartBuilder::on(root)
         .caption(title, (FONT, 20))
         .margin(15)
-        .x_label_area_size(45)
+        .x_label_area_size(x_label_area(&ticks))
         .y_label_area_size(60)
-        .build_cartesian_2d(0.5f64..k + 0.5, 0f64..100f64)
+        .build_cartesian_2d(0.5f64..k + 0.5, y0..y1)
         .map_err(s)?;
-    let fmt = |x: &f64| tick_label(&ticks, *x);
     chart
         .configure_mesh()
         .x_labels(groups.len() * 2 + 1)
-        .x_label_formatter(&fmt)
-        .y_label_formatter(&|v| format!("{v:.0}"))
+        .x_label_formatter(&|_| String::new())
+        .y_label_formatter(&|v| value_label(*v, y1 - y0))
         .x_desc(x_label)
-        .y_desc("final task %")
+        .y_desc(&axis.label)
         .label_style((FONT, 14))
         .axis_desc_style((FONT, 16))
         .light_line_style(WHITE.mix(0.0))
@@ -494,10 +607,11 @@ fn draw_boxes<DB: DrawingBackend>(
                 .map_err(s)?;
         }
     }
+    draw_ticks(root, &chart, &ticks)?;
     if series.iter().any(|l| !l.is_empty()) {
         chart
             .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
+            .position(legend_corner(groups, axis.range))
             .label_font((FONT, 14))
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK.mix(0.5))
@@ -510,6 +624,27 @@ fn draw_boxes<DB: DrawingBackend>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn long_tick_labels_widen_the_figure_and_wrap_per_knob() {
+        let short = [(1.0, "0.5".to_string()), (2.0, "1".to_string())];
+        let long = [(1.0, "algorithm=geese-bt terms=E+C+F".to_string()), (2.0, "algorithm=betr-geese".to_string())];
+        assert_eq!(tick_lines(&long[0].1), ["algorithm=geese-bt", "terms=E+C+F"]);
+        assert!(tick_width(&long) > 150 && tick_width(&short) < 30);
+        assert!(x_label_area(&long) > x_label_area(&short));
+        assert_eq!(value_label(0.12345, 1.0), "0.123");
+        assert_eq!(value_label(50.0, 100.0), "50");
+    }
+
+    #[test]
+    fn the_legend_goes_where_the_boxes_are_not() {
+        let g = |v: &[f64]| BoxGroup { label: String::new(), boxes: vec![v.to_vec()] };
+        let corner = |groups: &[BoxGroup]| legend_corner(groups, (0.0, 100.0));
+        assert_eq!(corner(&[g(&[90.0]), g(&[5.0, 20.0])]), SeriesLabelPosition::UpperRight);
+        assert_eq!(corner(&[g(&[5.0]), g(&[70.0, 95.0])]), SeriesLabelPosition::LowerRight);
+        assert_eq!(corner(&[g(&[60.0, 99.0]), g(&[10.0, 90.0])]), SeriesLabelPosition::LowerLeft);
+        assert_eq!(corner(&[g(&[10.0, 90.0]), g(&[10.0, 90.0])]), SeriesLabelPosition::UpperRight);
+    }
 
     #[test]
     fn jitter_is_bounded_and_deterministic() {

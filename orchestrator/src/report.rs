@@ -1,9 +1,13 @@
 //! Turning a results database into the tables and figures researchers publish:
-//! success rate, power and efficiency per condition and per x level (pooled over the
-//! other knobs, as the paper pools ablation over insertion times), least-squares slopes
-//! across conditions, learning curves, Fig.-6/10-style scatters and Fig.-4-style boxes.
+//! success rate, power, efficiency and wall time per step per condition and per x level
+//! (pooled over the other knobs, as the paper pools ablation over insertion times),
+//! least-squares slopes across conditions, learning curves, Fig.-6/10-style scatters,
+//! Fig.-4/8b-style boxes and Fig.-9b-style run-time boxes.
+//!
+//! Levels are ordered as the campaign's conditions first name them: numeric levels by
+//! value, text levels (`algorithm`, `terms`, conditions) in order of first appearance.
 use crate::metrics::{self, EfficiencyVariant, Outcome, PowerVariant, Stats};
-use crate::plot::{self, BoxGroup, Curve, PlotError, ScatterPanel};
+use crate::plot::{self, BoxAxis, BoxGroup, Curve, PlotError, ScatterPanel};
 use crate::store::{csv_field, Store, StoreError, StoredTrial};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
@@ -58,6 +62,9 @@ pub struct Point {
     pub efficiency: f64,
     pub final_pct: f64,
     pub success: bool,
+    /// Wall milliseconds per step of the trial's last stage (the stage its task % is
+    /// from), when the database has it.
+    pub ms_per_step: Option<f64>,
 }
 
 /// One row of a metrics table.
@@ -71,6 +78,8 @@ pub struct Row {
     pub success_rate: f64,
     pub power: Option<Stats>,
     pub efficiency: Option<Stats>,
+    /// Over the trials whose wall time is known.
+    pub ms_per_step: Option<Stats>,
 }
 
 /// A fitted line across conditions.
@@ -91,6 +100,8 @@ pub struct Report {
     pub description: String,
     pub x_name: String,
     pub series_name: String,
+    /// Series levels in plotting order (numeric by value, text by first appearance).
+    pub series_levels: Vec<String>,
     pub efficiency: EfficiencyVariant,
     pub power: PowerVariant,
     pub threshold: f64,
@@ -105,6 +116,7 @@ fn row(task: &str, label: String, pts: &[&Point], failed: usize) -> Row {
     let succ: Vec<bool> = pts.iter().map(|p| p.success).collect();
     let pw: Vec<f64> = pts.iter().map(|p| p.power).collect();
     let ef: Vec<f64> = pts.iter().map(|p| p.efficiency).collect();
+    let ms: Vec<f64> = pts.iter().filter_map(|p| p.ms_per_step).collect();
     Row {
         task: task.to_string(),
         label,
@@ -113,7 +125,26 @@ fn row(task: &str, label: String, pts: &[&Point], failed: usize) -> Row {
         success_rate: metrics::success_rate(&succ),
         power: metrics::stats(&pw),
         efficiency: metrics::stats(&ef),
+        ms_per_step: metrics::stats(&ms),
     }
+}
+
+/// Distinct labels in plotting order: by value when every label is a number, else in
+/// order of `first` (the first condition index naming the label).
+fn level_order<'a>(labels: impl Iterator<Item = (&'a str, i64)>) -> Vec<String> {
+    let mut first: Vec<(String, i64)> = Vec::new();
+    for (l, ci) in labels {
+        match first.iter_mut().find(|(x, _)| x == l) {
+            Some(e) => e.1 = e.1.min(ci),
+            None => first.push((l.to_string(), ci)),
+        }
+    }
+    if first.iter().all(|(l, _)| l.parse::<f64>().is_ok()) {
+        first.sort_by(|a, b| a.0.parse::<f64>().unwrap_or(0.0).total_cmp(&b.0.parse::<f64>().unwrap_or(0.0)));
+    } else {
+        first.sort_by_key(|e| e.1);
+    }
+    first.into_iter().map(|(l, _)| l).collect()
 }
 
 /// Compute the report from a database.
@@ -175,6 +206,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
                 efficiency: e,
                 final_pct: o.final_pct,
                 success: o.success,
+                ms_per_step: t.ms_per_step(),
             });
         }
     }
@@ -220,11 +252,13 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
             });
         }
     }
+    let series_levels = level_order(kept.iter().map(|t| (t.series.as_str(), t.condition_index)));
     Ok(Report {
         name: meta("name")?,
         description: meta("description")?,
         x_name: meta("x")?,
         series_name: meta("series")?,
+        series_levels,
         efficiency,
         power: opts.power,
         threshold,
@@ -248,10 +282,10 @@ fn fmt_stats(s: &Option<Stats>) -> [String; 3] {
 }
 
 fn table(out: &mut dyn Write, first: &str, rows: &[Row]) -> std::io::Result<()> {
-    let w = rows.iter().map(|r| r.label.len()).max().unwrap_or(0).max(first.len());
+    let w = rows.iter().map(|r| r.label.chars().count()).max().unwrap_or(0).max(first.len());
     writeln!(
         out,
-        "{:<9} {:<w$} {:>6} {:>6} {:>8}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}",
+        "{:<9} {:<w$} {:>6} {:>6} {:>8}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}  {:>8} {:>8}",
         "task",
         first,
         "trials",
@@ -262,15 +296,21 @@ fn table(out: &mut dyn Write, first: &str, rows: &[Row]) -> std::io::Result<()> 
         "pow.IQR",
         "eff.mean",
         "eff.med",
-        "eff.IQR"
+        "eff.IQR",
+        "ms/step",
+        "ms.IQR"
     )?;
     for r in rows {
         let [pm, pmed, piqr] = fmt_stats(&r.power);
         let [em, emed, eiqr] = fmt_stats(&r.efficiency);
+        let [msmed, msiqr] = match &r.ms_per_step {
+            Some(s) => [format!("{:.3}", s.median), format!("{:.3}", s.iqr())],
+            None => ["-".into(), "-".into()],
+        };
         writeln!(
             out,
-            "{:<9} {:<w$} {:>6} {:>6} {:>8.2}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}",
-            r.task, r.label, r.trials, r.failed, r.success_rate, pm, pmed, piqr, em, emed, eiqr
+            "{:<9} {:<w$} {:>6} {:>6} {:>8.2}  {:>8} {:>8} {:>8}  {:>8} {:>8} {:>8}  {:>8} {:>8}",
+            r.task, r.label, r.trials, r.failed, r.success_rate, pm, pmed, piqr, em, emed, eiqr, msmed, msiqr
         )?;
     }
     Ok(())
@@ -304,6 +344,16 @@ impl Report {
                 EfficiencyVariant::Sec5Ablation => "code sec5-ablation (t_min 5200)",
                 EfficiencyVariant::Sec5 => "code sec5 (t_min 2756, |·|)",
                 EfficiencyVariant::Sec7 => "code sec7 (t_min per condition)",
+            }
+        )?;
+        writeln!(
+            out,
+            "ms/step: median wall milliseconds per step of each trial's last stage (a fixed test's, \
+             if it has one){}",
+            if self.points.iter().any(|p| p.ms_per_step.is_none()) {
+                "; unknown for trials stored before the database kept it"
+            } else {
+                ""
             }
         )?;
         writeln!(out, "\nPer condition:")?;
@@ -351,10 +401,11 @@ impl Report {
 
     /// Write `conditions.csv`, `pooled.csv`, `fits.csv` and `points.csv` into `dir`.
     pub fn write_csv(&self, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
+        std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
         let mut files = Vec::new();
         let rows_csv = |name: &str, rows: &[Row]| -> Result<PathBuf, ReportError> {
             let mut s = String::from(
-                "task,label,trials,failed,success_rate,power_mean,power_median,power_q1,power_q3,efficiency_mean,efficiency_median,efficiency_q1,efficiency_q3\n",
+                "task,label,trials,failed,success_rate,power_mean,power_median,power_q1,power_q3,efficiency_mean,efficiency_median,efficiency_q1,efficiency_q3,ms_per_step_mean,ms_per_step_median,ms_per_step_q1,ms_per_step_q3\n",
             );
             for r in rows {
                 let st = |v: &Option<Stats>| match v {
@@ -362,14 +413,15 @@ impl Report {
                     None => ",,,".into(),
                 };
                 s.push_str(&format!(
-                    "{},{},{},{},{},{},{}\n",
+                    "{},{},{},{},{},{},{},{}\n",
                     r.task,
                     csv_field(&r.label),
                     r.trials,
                     r.failed,
                     r.success_rate,
                     st(&r.power),
-                    st(&r.efficiency)
+                    st(&r.efficiency),
+                    st(&r.ms_per_step)
                 ));
             }
             write_file(&dir.join(name), &s)
@@ -390,10 +442,12 @@ impl Report {
             ));
         }
         files.push(write_file(&dir.join("fits.csv"), &s)?);
-        let mut s = String::from("task,condition,seed,x,x_position,series,success,power,efficiency,final_task_pct\n");
+        let mut s = String::from(
+            "task,condition,seed,x,x_position,series,success,power,efficiency,final_task_pct,ms_per_step\n",
+        );
         for p in &self.points {
             s.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{}\n",
                 p.task,
                 csv_field(&p.condition),
                 p.seed,
@@ -403,7 +457,8 @@ impl Report {
                 p.success,
                 p.power,
                 p.efficiency,
-                p.final_pct
+                p.final_pct,
+                p.ms_per_step.map(|v| v.to_string()).unwrap_or_default()
             ));
         }
         files.push(write_file(&dir.join("points.csv"), &s)?);
@@ -411,6 +466,19 @@ impl Report {
     }
 
     /// Draw every figure into `dir` (PNG and SVG each); returns the files written.
+    ///
+    /// Per task:
+    /// * `curves-{task}`: task % over time, one median and IQR band per x level; with a
+    ///   series knob other than x, one such figure per series level instead,
+    ///   `curves-{task}-{series}-{level}` (Fig. 4a);
+    /// * `learning-{task}` (when trials tested learned populations): task % over time of
+    ///   the learning runs they tested, one curve per series level, or per x level
+    ///   without a series knob (Fig. 8a);
+    /// * `resilience-{task}`: per-trial power and efficiency against x (Figs. 6, 10);
+    /// * `final-{task}`: box plots of the final task % per x level, grouped by series
+    ///   level (Figs. 4b, 8b);
+    /// * `walltime-{task}` (when wall times are stored): box plots of the wall
+    ///   milliseconds per step per x level, grouped by series level (Fig. 9b).
     pub fn plot(&self, store: &Store, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
         std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
         let mut files = Vec::new();
@@ -420,7 +488,8 @@ impl Report {
             t.dedup();
             t
         };
-        // Learning curves: median and IQR of task % per step, per x level (and series).
+        // A series knob that is also the x knob adds nothing to the curves.
+        let by_series = !self.series_name.is_empty() && self.series_name != x_name;
         let kept: HashMap<i64, &StoredTrial> = {
             let keys: std::collections::HashSet<(String, String, u64)> =
                 self.points.iter().map(|p| (p.task.clone(), p.condition.clone(), p.seed)).collect();
@@ -430,36 +499,19 @@ impl Report {
                 .map(|t| (t.id, t))
                 .collect()
         };
+        // Learning curves: median and IQR of task % per step, per x level (and series).
         type Key = (String, String, u64, String); // task, series, x order bits, x label
         let mut acc: BTreeMap<Key, BTreeMap<u64, Vec<f64>>> = BTreeMap::new();
         store.for_each_task_pct(|id, step, v| {
             if let Some(t) = kept.get(&id) {
-                let key = (t.task.clone(), t.series.clone(), order_bits(t.x), t.x_label.clone());
+                let series = if by_series { t.series.clone() } else { String::new() };
+                let key = (t.task.clone(), series, order_bits(t.x), t.x_label.clone());
                 acc.entry(key).or_default().entry(step).or_default().push(v);
             }
         })?;
         let mut panels: BTreeMap<(String, String), Vec<Curve>> = BTreeMap::new();
         for ((task, series, _, x_label), by_step) in acc {
-            let mut c = Curve {
-                label: format!("{x_name} = {x_label}"),
-                steps: vec![0],
-                median: vec![0.0],
-                q1: vec![0.0],
-                q3: vec![0.0],
-            };
-            let every = (by_step.len() / 600).max(1);
-            let last = by_step.keys().next_back().copied();
-            for (i, (step, mut vals)) in by_step.into_iter().enumerate() {
-                if i % every != 0 && Some(step) != last {
-                    continue;
-                }
-                vals.sort_by(|a, b| a.total_cmp(b));
-                c.steps.push(step);
-                c.median.push(metrics::quantile(&vals, 0.5).unwrap_or(0.0));
-                c.q1.push(metrics::quantile(&vals, 0.25).unwrap_or(0.0));
-                c.q3.push(metrics::quantile(&vals, 0.75).unwrap_or(0.0));
-            }
-            panels.entry((task, series)).or_default().push(c);
+            panels.entry((task, series)).or_default().push(curve(format!("{x_name} = {x_label}"), by_step));
         }
         for ((task, series), curves) in &panels {
             let (stem, title) = if series.is_empty() {
@@ -478,6 +530,7 @@ impl Report {
             };
             files.extend(plot::learning_curves(&dir.join(stem), &title, curves, self.threshold)?);
         }
+        files.extend(self.plot_learning(store, dir, &kept, by_series, &x_name)?);
         for task in &tasks {
             let pts: Vec<&Point> = self.points.iter().filter(|p| &p.task == task).collect();
             let mut ticks: Vec<(f64, String)> = pts.iter().map(|p| (p.x_pos, p.x_label.clone())).collect();
@@ -503,35 +556,127 @@ impl Report {
             ];
             let title = format!("{} ({task}): power and efficiency vs {x_name}", self.name);
             files.extend(plot::scatter(&dir.join(format!("resilience-{task}")), &title, &panels, &x_name)?);
-            // Box plots of the final task % per x level, grouped by series.
-            let mut series: Vec<String> = pts.iter().map(|p| p.series.clone()).collect();
-            series.sort_by(|a, b| match (a.parse::<f64>(), b.parse::<f64>()) {
-                (Ok(x), Ok(y)) => x.total_cmp(&y),
-                _ => a.cmp(b),
-            });
-            series.dedup();
-            let mut groups: Vec<BoxGroup> = Vec::new();
-            for (pos, label) in &ticks {
-                let boxes = series
-                    .iter()
-                    .map(|s| {
-                        pts.iter()
-                            .filter(|p| p.x_pos == *pos && &p.series == s)
-                            .map(|p| p.final_pct)
-                            .collect::<Vec<_>>()
-                    })
-                    .collect();
-                groups.push(BoxGroup { label: label.clone(), boxes });
-            }
+            // Box plots per x level, grouped by series level.
+            let series: Vec<&String> =
+                self.series_levels.iter().filter(|s| pts.iter().any(|p| &p.series == *s)).collect();
             let series_labels: Vec<String> = series
                 .iter()
                 .map(|s| if s.is_empty() { String::new() } else { format!("{} = {s}", self.series_name) })
                 .collect();
+            let groups = |value: &dyn Fn(&Point) -> Option<f64>| -> Vec<BoxGroup> {
+                ticks
+                    .iter()
+                    .map(|(pos, label)| BoxGroup {
+                        label: label.clone(),
+                        boxes: series
+                            .iter()
+                            .map(|s| {
+                                pts.iter()
+                                    .filter(|p| p.x_pos == *pos && &p.series == *s)
+                                    .filter_map(|p| value(p))
+                                    .collect()
+                            })
+                            .collect(),
+                    })
+                    .collect()
+            };
             let title = format!("{} ({task}): final task % by {x_name}", self.name);
-            files.extend(plot::boxes(&dir.join(format!("final-{task}")), &title, &groups, &series_labels, &x_name)?);
+            files.extend(plot::boxes(
+                &dir.join(format!("final-{task}")),
+                &title,
+                &groups(&|p| Some(p.final_pct)),
+                &series_labels,
+                &x_name,
+                &BoxAxis::task_pct(),
+            )?);
+            let ms: Vec<f64> = pts.iter().filter_map(|p| p.ms_per_step).collect();
+            if let Some(max) = ms.iter().copied().reduce(f64::max) {
+                let title = format!("{} ({task}): wall time per step by {x_name} (each trial's last stage)", self.name);
+                let axis =
+                    BoxAxis { label: "wall ms per step".into(), range: (0.0, if max > 0.0 { max * 1.3 } else { 1.0 }) };
+                files.extend(plot::boxes(
+                    &dir.join(format!("walltime-{task}")),
+                    &title,
+                    &groups(&|p| p.ms_per_step),
+                    &series_labels,
+                    &x_name,
+                    &axis,
+                )?);
+            }
         }
         Ok(files)
     }
+
+    /// `learning-{task}`: the learning runs whose populations the trials tested, one
+    /// curve per series level (without a series knob, or with x as the series, one per
+    /// x level). A learning run tested by several trials of a curve (one per sample
+    /// size, say) counts once.
+    fn plot_learning(
+        &self,
+        store: &Store,
+        dir: &Path,
+        kept: &HashMap<i64, &StoredTrial>,
+        by_series: bool,
+        x_name: &str,
+    ) -> Result<Vec<PathBuf>, ReportError> {
+        let mut runs: BTreeMap<i64, Vec<(u64, f64)>> = BTreeMap::new();
+        store.for_each_learning_pct(|id, step, v| {
+            if kept.contains_key(&id) {
+                runs.entry(id).or_default().push((step, v));
+            }
+        })?;
+        let mut seen = std::collections::HashSet::new();
+        // (task, curve order, curve label) → step → values
+        let mut acc: BTreeMap<(String, u64, String), BTreeMap<u64, Vec<f64>>> = BTreeMap::new();
+        for (id, rows) in runs {
+            let t = kept[&id];
+            let (order, label) = if by_series {
+                let si = self.series_levels.iter().position(|s| s == &t.series).unwrap_or(usize::MAX);
+                (si as u64, format!("{} = {}", self.series_name, t.series))
+            } else {
+                (order_bits(t.x), format!("{x_name} = {}", t.x_label))
+            };
+            let digest: Vec<(u64, u64)> = rows.iter().map(|(s, v)| (*s, v.to_bits())).collect();
+            if !seen.insert((t.task.clone(), order, t.seed, digest)) {
+                continue;
+            }
+            let by_step = acc.entry((t.task.clone(), order, label)).or_default();
+            for (step, v) in rows {
+                by_step.entry(step).or_default().push(v);
+            }
+        }
+        let mut panels: BTreeMap<String, Vec<Curve>> = BTreeMap::new();
+        for ((task, _, label), by_step) in acc {
+            panels.entry(task).or_default().push(curve(label, by_step));
+        }
+        let mut files = Vec::new();
+        let by = if by_series { &self.series_name } else { x_name };
+        for (task, curves) in &panels {
+            let title =
+                format!("{} ({task}): task % of the learning runs tested, by {by} (median, IQR band)", self.name);
+            files.extend(plot::learning_curves(&dir.join(format!("learning-{task}")), &title, curves, self.threshold)?);
+        }
+        Ok(files)
+    }
+}
+
+/// The median and quartiles of task % per step (at most about 600 steps drawn, the last
+/// always), starting from 0 % at step 0.
+fn curve(label: String, by_step: BTreeMap<u64, Vec<f64>>) -> Curve {
+    let mut c = Curve { label, steps: vec![0], median: vec![0.0], q1: vec![0.0], q3: vec![0.0] };
+    let every = (by_step.len() / 600).max(1);
+    let last = by_step.keys().next_back().copied();
+    for (i, (step, mut vals)) in by_step.into_iter().enumerate() {
+        if i % every != 0 && Some(step) != last {
+            continue;
+        }
+        vals.sort_by(|a, b| a.total_cmp(b));
+        c.steps.push(step);
+        c.median.push(metrics::quantile(&vals, 0.5).unwrap_or(0.0));
+        c.q1.push(metrics::quantile(&vals, 0.25).unwrap_or(0.0));
+        c.q3.push(metrics::quantile(&vals, 0.75).unwrap_or(0.0));
+    }
+    c
 }
 
 /// Sort key of an f64 that orders like the number (for BTreeMap keys).

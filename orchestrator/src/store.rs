@@ -6,6 +6,12 @@
 //! by skipping them; `UNIQUE(condition, task, seed)` makes running one twice impossible.
 //! With WAL and `synchronous = NORMAL` a killed process loses nothing it committed; a
 //! power cut may lose the last few trials, which the next invocation then runs again.
+//!
+//! The schema's version is SQLite's `user_version` ([`SCHEMA_VERSION`]). Version 0 (the
+//! first, unversioned databases) lacks `trials.stage_wall_seconds` and the
+//! `learning_steps` table: [`Store::create`] adds them (the trials stored before keep
+//! NULL there), [`Store::open`] adds them too when the file is writable and otherwise
+//! reads the database as it is.
 use crate::campaign::{Campaign, CampaignOutcome};
 use crate::metrics::Outcome;
 use crate::output::versions;
@@ -59,6 +65,7 @@ CREATE TABLE IF NOT EXISTS trials (
     stagnation_steps INTEGER,
     wall_seconds    REAL NOT NULL,
     finished_unix   INTEGER NOT NULL,
+    stage_wall_seconds REAL,
     UNIQUE (condition, task, seed)
 );
 CREATE TABLE IF NOT EXISTS steps (
@@ -76,6 +83,21 @@ CREATE TABLE IF NOT EXISTS steps (
     PRIMARY KEY (trial, step)
 ) WITHOUT ROWID;
 ";
+
+/// Tables and columns added after version 0 (created by [`SCHEMA`] in a new database;
+/// [`Store::migrate`] adds `trials.stage_wall_seconds` to an old one).
+const SCHEMA_V1: &str = "
+CREATE TABLE IF NOT EXISTS learning_steps (
+    trial    INTEGER NOT NULL REFERENCES trials(id),
+    step     INTEGER NOT NULL,
+    task_pct REAL NOT NULL,
+    PRIMARY KEY (trial, step)
+) WITHOUT ROWID;
+";
+
+/// Version of the schema this code writes (SQLite `user_version`): 1 added
+/// `trials.stage_wall_seconds` and `learning_steps`.
+pub const SCHEMA_VERSION: i32 = 1;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -119,7 +141,12 @@ pub struct TrialResult {
     pub rows: Vec<StepReport>,
     /// Set when the trial failed.
     pub error: Option<String>,
+    /// The whole trial, every stage this invocation ran included (a learning stage
+    /// shared with another trial is run, and counted, once).
     pub wall_seconds: f64,
+    /// Steps (already thinned) of the learning stage whose population the trial tested:
+    /// (step, task %); empty when the trial is itself a learning run.
+    pub learning_rows: Vec<(u64, f64)>,
 }
 
 /// A trial as read back.
@@ -137,6 +164,10 @@ pub struct StoredTrial {
     /// `None` for a failed trial.
     pub outcome: Option<Outcome>,
     pub wall_seconds: f64,
+    /// Wall time of the trial's last stage (the one whose steps are stored), as its
+    /// runner measured it ([`TrialSummary::wall_seconds`]); `None` for a failed trial
+    /// and for trials stored by a version-0 database.
+    pub stage_wall_seconds: Option<f64>,
     /// The `geese campaign` invocation (sessions table) that ran it.
     pub session: i64,
     /// How it ran: "in-process" or "zenoh".
@@ -154,9 +185,23 @@ pub struct Session {
     pub wall_seconds: f64,
 }
 
+impl StoredTrial {
+    /// Milliseconds of wall time per step of the trial's last stage (the paper's Fig. 9b
+    /// run time), when known.
+    pub fn ms_per_step(&self) -> Option<f64> {
+        let steps = self.outcome.as_ref()?.steps;
+        let wall = self.stage_wall_seconds?;
+        (steps > 0).then(|| wall * 1000.0 / steps as f64)
+    }
+}
+
 pub struct Store {
     conn: Connection,
     path: PathBuf,
+    /// The trials table has `stage_wall_seconds` (false: a read-only version-0 file).
+    has_stage_wall: bool,
+    /// The `learning_steps` table exists.
+    has_learning: bool,
 }
 
 fn now_unix() -> i64 {
@@ -174,12 +219,54 @@ impl Store {
             std::fs::create_dir_all(dir).map_err(|source| StoreError::Io { path: dir.into(), source })?;
         }
         let conn = Connection::open(path).map_err(|source| StoreError::Sql { path: path.into(), source })?;
-        let s = Store { conn, path: path.into() };
+        let mut s = Store { conn, path: path.into(), has_stage_wall: true, has_learning: true };
         s.sql(s.conn.busy_timeout(std::time::Duration::from_secs(30)))?;
         s.sql(s.conn.pragma_update(None, "journal_mode", "WAL"))?;
         s.sql(s.conn.pragma_update(None, "synchronous", "NORMAL"))?;
         s.sql(s.conn.execute_batch(SCHEMA))?;
+        s.sql(s.migrate())?;
+        s.detect()?;
         Ok(s)
+    }
+
+    /// Bring a database of an older schema version up to [`SCHEMA_VERSION`] (a no-op on
+    /// a current one), in one transaction.
+    fn migrate(&self) -> rusqlite::Result<()> {
+        let version: i32 = self.conn.query_row("PRAGMA user_version", [], |r| r.get(0))?;
+        if version >= SCHEMA_VERSION && self.column_exists("trials", "stage_wall_seconds")? {
+            return Ok(());
+        }
+        self.conn.execute_batch("BEGIN IMMEDIATE")?;
+        let r = (|| {
+            if !self.column_exists("trials", "stage_wall_seconds")? {
+                self.conn.execute_batch("ALTER TABLE trials ADD COLUMN stage_wall_seconds REAL")?;
+            }
+            self.conn.execute_batch(SCHEMA_V1)?;
+            self.conn.pragma_update(None, "user_version", SCHEMA_VERSION)
+        })();
+        match r {
+            Ok(()) => self.conn.execute_batch("COMMIT"),
+            Err(e) => {
+                let _ = self.conn.execute_batch("ROLLBACK");
+                Err(e)
+            }
+        }
+    }
+
+    fn column_exists(&self, table: &str, column: &str) -> rusqlite::Result<bool> {
+        let mut st = self.conn.prepare("SELECT 1 FROM pragma_table_info(?1) WHERE name = ?2")?;
+        st.exists(params![table, column])
+    }
+
+    /// Which of the version-1 additions this database has.
+    fn detect(&mut self) -> Result<(), StoreError> {
+        self.has_stage_wall = self.sql(self.column_exists("trials", "stage_wall_seconds"))?;
+        self.has_learning = self.sql(self.conn.query_row(
+            "SELECT COUNT(*) FROM sqlite_master WHERE type = 'table' AND name = 'learning_steps'",
+            [],
+            |r| r.get::<_, i64>(0),
+        ))? > 0;
+        Ok(())
     }
 
     /// Open an existing database (report, export, inspection).
@@ -190,10 +277,20 @@ impl Store {
         let conn =
             Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX)
                 .map_err(|source| StoreError::Sql { path: path.into(), source })?;
-        let s = Store { conn, path: path.into() };
+        let mut s = Store { conn, path: path.into(), has_stage_wall: true, has_learning: true };
         s.sql(s.conn.busy_timeout(std::time::Duration::from_secs(30)))?;
-        s.sql(s.conn.execute_batch(SCHEMA))?;
+        // A read-only file of an older version is read as it is.
+        match s.conn.execute_batch(SCHEMA).and_then(|()| s.migrate()) {
+            Err(rusqlite::Error::SqliteFailure(e, _)) if e.code == rusqlite::ErrorCode::ReadOnly => {}
+            r => s.sql(r)?,
+        }
+        s.detect()?;
         Ok(s)
+    }
+
+    /// The schema version of the database (SQLite `user_version`).
+    pub fn schema_version(&self) -> Result<i32, StoreError> {
+        self.sql(self.conn.query_row("PRAGMA user_version", [], |r| r.get(0)))
     }
 
     pub fn path(&self) -> &Path {
@@ -323,11 +420,16 @@ impl Store {
         let path = self.path.clone();
         let e = |source| StoreError::Sql { path: path.clone(), source };
         let tx = self.conn.transaction().map_err(e)?;
-        tx.execute(
-            "DELETE FROM steps WHERE trial IN (SELECT id FROM trials WHERE condition = ?1 AND task = ?2 AND seed = ?3)",
-            params![rec.condition, rec.task, rec.seed as i64],
-        )
-        .map_err(e)?;
+        for table in ["steps", "learning_steps"] {
+            tx.execute(
+                &format!(
+                    "DELETE FROM {table} WHERE trial IN
+                        (SELECT id FROM trials WHERE condition = ?1 AND task = ?2 AND seed = ?3)"
+                ),
+                params![rec.condition, rec.task, rec.seed as i64],
+            )
+            .map_err(e)?;
+        }
         tx.execute(
             "DELETE FROM trials WHERE condition = ?1 AND task = ?2 AND seed = ?3",
             params![rec.condition, rec.task, rec.seed as i64],
@@ -360,9 +462,9 @@ impl Store {
             "INSERT INTO trials (condition, condition_index, condition_json, x, x_label, series, task, seed, status, error,
                 session, transport, config, grammar, grammar_digest, steps, final_task_pct, max_task_pct,
                 first_step_at_threshold, rows_at_threshold, success, genetic_steps, stagnation_steps,
-                wall_seconds, finished_unix)
+                wall_seconds, finished_unix, stage_wall_seconds)
              VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21,
-                ?22, ?23, ?24, ?25)",
+                ?22, ?23, ?24, ?25, ?26)",
             params![
                 rec.condition,
                 rec.condition_index,
@@ -389,6 +491,7 @@ impl Store {
                 r.summary.as_ref().map(|s| s.stagnation_steps as i64),
                 r.wall_seconds,
                 now_unix(),
+                if done { r.summary.as_ref().map(|s| s.wall_seconds) } else { None },
             ],
         )
         .map_err(e)?;
@@ -417,6 +520,12 @@ impl Store {
                 ])
                 .map_err(e)?;
             }
+            let mut st = tx
+                .prepare_cached("INSERT INTO learning_steps (trial, step, task_pct) VALUES (?1, ?2, ?3)")
+                .map_err(e)?;
+            for (step, pct) in &r.learning_rows {
+                st.execute(params![id, *step as i64, pct]).map_err(e)?;
+            }
         }
         tx.execute("UPDATE sessions SET wall_seconds = ?2 WHERE id = ?1", params![session, session_wall]).map_err(e)?;
         tx.commit().map_err(e)
@@ -424,12 +533,13 @@ impl Store {
 
     /// Every stored trial, in condition, task, seed order.
     pub fn trials(&self) -> Result<Vec<StoredTrial>, StoreError> {
-        let mut st = self.sql(self.conn.prepare(
+        let stage_wall = if self.has_stage_wall { "stage_wall_seconds" } else { "NULL" };
+        let mut st = self.sql(self.conn.prepare(&format!(
             "SELECT id, condition, condition_index, x, x_label, series, task, seed, status, error, steps,
                     final_task_pct, max_task_pct, first_step_at_threshold, rows_at_threshold, success, wall_seconds,
-                    session, transport
+                    session, transport, {stage_wall}
              FROM trials ORDER BY condition_index, task, seed",
-        ))?;
+        )))?;
         let rows = st.query_map([], |r| {
             let status: String = r.get(8)?;
             let outcome = if status == "done" {
@@ -458,6 +568,7 @@ impl Store {
                 wall_seconds: r.get(16)?,
                 session: r.get(17)?,
                 transport: r.get(18)?,
+                stage_wall_seconds: r.get(19)?,
             })
         });
         let rows = self.sql(rows)?;
@@ -470,11 +581,24 @@ impl Store {
 
     /// Task % rows of the finished trials: calls `f(trial id, step, task %)`, ordered
     /// by trial and step.
-    pub fn for_each_task_pct(&self, mut f: impl FnMut(i64, u64, f64)) -> Result<(), StoreError> {
-        let mut st = self.sql(self.conn.prepare(
-            "SELECT s.trial, s.step, s.task_pct FROM steps s JOIN trials t ON t.id = s.trial
-             WHERE t.status = 'done' ORDER BY s.trial, s.step",
-        ))?;
+    pub fn for_each_task_pct(&self, f: impl FnMut(i64, u64, f64)) -> Result<(), StoreError> {
+        self.task_pct_rows("steps", f)
+    }
+
+    /// Task % rows of the learning stages whose populations finished trials tested, as
+    /// [`Store::for_each_task_pct`] (nothing for a database without them).
+    pub fn for_each_learning_pct(&self, f: impl FnMut(i64, u64, f64)) -> Result<(), StoreError> {
+        if !self.has_learning {
+            return Ok(());
+        }
+        self.task_pct_rows("learning_steps", f)
+    }
+
+    fn task_pct_rows(&self, table: &str, mut f: impl FnMut(i64, u64, f64)) -> Result<(), StoreError> {
+        let mut st = self.sql(self.conn.prepare(&format!(
+            "SELECT s.trial, s.step, s.task_pct FROM {table} s JOIN trials t ON t.id = s.trial
+             WHERE t.status = 'done' ORDER BY s.trial, s.step"
+        )))?;
         let mut rows = self.sql(st.query([]))?;
         while let Some(r) = self.sql(rows.next())? {
             let (a, b, c) = self.sql((|| Ok((r.get::<_, i64>(0)?, r.get::<_, i64>(1)?, r.get::<_, f64>(2)?)))())?;
@@ -513,30 +637,44 @@ impl Store {
     }
 
     /// Export the database to CSV files in `dir`: `trials.csv`, `steps.csv`,
-    /// `sessions.csv` and `manifest.json` (the meta table). Returns the files written.
+    /// `sessions.csv`, `learning_steps.csv` (the learning stages of fixed tests; not in
+    /// a read-only version-0 database) and `manifest.json` (the meta table). Returns the
+    /// files written.
     pub fn export_csv(&self, dir: &Path) -> Result<Vec<PathBuf>, StoreError> {
         std::fs::create_dir_all(dir).map_err(|source| StoreError::Io { path: dir.into(), source })?;
         let mut written = Vec::new();
-        let exports = [
+        let stage_wall = if self.has_stage_wall { "stage_wall_seconds" } else { "NULL AS stage_wall_seconds" };
+        let mut exports = vec![
             (
                 "trials.csv",
-                "SELECT id, condition, condition_index, x, x_label, series, task, seed, status, error, session, transport,
-                        grammar, grammar_digest, steps, final_task_pct, max_task_pct, first_step_at_threshold,
-                        rows_at_threshold, success, genetic_steps, stagnation_steps, wall_seconds, finished_unix,
-                        condition_json, config
-                 FROM trials ORDER BY id",
+                format!(
+                    "SELECT id, condition, condition_index, x, x_label, series, task, seed, status, error, session,
+                        transport, grammar, grammar_digest, steps, final_task_pct, max_task_pct,
+                        first_step_at_threshold, rows_at_threshold, success, genetic_steps, stagnation_steps,
+                        wall_seconds, {stage_wall}, finished_unix, condition_json, config
+                     FROM trials ORDER BY id"
+                ),
             ),
             (
                 "steps.csv",
                 "SELECT s.trial, t.task, t.condition, t.seed, s.step, s.task_pct, s.lt_mean, s.lt_std, s.genetic_steps,
                         s.stagnation_steps, s.live_agents, s.missing_intents, s.rejected, s.genes_lost
-                 FROM steps s JOIN trials t ON t.id = s.trial ORDER BY s.trial, s.step",
+                 FROM steps s JOIN trials t ON t.id = s.trial ORDER BY s.trial, s.step"
+                    .to_string(),
             ),
-            ("sessions.csv", "SELECT * FROM sessions ORDER BY id"),
+            ("sessions.csv", "SELECT * FROM sessions ORDER BY id".to_string()),
         ];
+        if self.has_learning {
+            exports.push((
+                "learning_steps.csv",
+                "SELECT s.trial, t.task, t.condition, t.seed, s.step, s.task_pct
+                 FROM learning_steps s JOIN trials t ON t.id = s.trial ORDER BY s.trial, s.step"
+                    .to_string(),
+            ));
+        }
         for (file, query) in exports {
             let path = dir.join(file);
-            self.query_to_csv(query, &path)?;
+            self.query_to_csv(&query, &path)?;
             written.push(path);
         }
         let mut st = self.sql(self.conn.prepare("SELECT key, value FROM meta ORDER BY key"))?;
@@ -600,6 +738,79 @@ pub fn csv_field(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A database as the first, unversioned schema wrote it, with one finished trial.
+    fn version_0_database(path: &Path) {
+        let v0 = SCHEMA.replace("    stage_wall_seconds REAL,\n", "");
+        assert_ne!(v0, SCHEMA);
+        let conn = Connection::open(path).unwrap();
+        conn.execute_batch(&v0).unwrap();
+        conn.execute_batch(
+            "INSERT INTO sessions (started_unix, command, versions, campaign_digest) VALUES (0, 'geese', '{}', 'd');
+             INSERT INTO trials (condition, condition_index, condition_json, x, x_label, series, task, seed, status,
+                error, session, transport, config, grammar, grammar_digest, steps, final_task_pct, max_task_pct,
+                first_step_at_threshold, rows_at_threshold, success, genetic_steps, stagnation_steps, wall_seconds,
+                finished_unix)
+             VALUES ('ip=0.9', 0, '{\"ip\":0.9}', 0.9, '0.9', '', 'foraging', 1, 'done', NULL, 1, 'in-process',
+                '{\"steps\":10}', 'g', 'd', 10, 90.0, 95.0, 5, 6, 1, 3, 0, 1.5, 0);
+             INSERT INTO steps VALUES (1, 10, 90.0, 0, 0, 0, 0, 10, 0, 0, 0);",
+        )
+        .unwrap();
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("geese-store-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn a_version_0_database_opens_and_is_migrated() {
+        let dir = scratch("v0");
+        let db = dir.join("old.sqlite");
+        version_0_database(&db);
+        let s = Store::open(&db).unwrap();
+        assert_eq!(s.schema_version().unwrap(), SCHEMA_VERSION);
+        let t = s.trials().unwrap();
+        assert_eq!(t.len(), 1);
+        assert_eq!((t[0].stage_wall_seconds, t[0].ms_per_step(), t[0].wall_seconds), (None, None, 1.5));
+        assert_eq!(t[0].outcome.map(|o| o.final_pct), Some(90.0));
+        let mut n = 0;
+        s.for_each_learning_pct(|_, _, _| n += 1).unwrap();
+        assert_eq!(n, 0);
+        let r = crate::report::build(&s, &Default::default()).unwrap();
+        assert!(r.points[0].ms_per_step.is_none() && r.conditions[0].ms_per_step.is_none());
+        let files = s.export_csv(&dir.join("csv")).unwrap();
+        assert!(files.iter().any(|f| f.ends_with("learning_steps.csv")));
+        let trials = std::fs::read_to_string(dir.join("csv/trials.csv")).unwrap();
+        assert!(trials.lines().next().unwrap().contains("stage_wall_seconds"));
+        drop(s);
+        // The writer opens it too (again: already current), and stores new trials' wall times.
+        let s = Store::create(&db).unwrap();
+        assert_eq!(s.schema_version().unwrap(), SCHEMA_VERSION);
+        assert_eq!(s.trials().unwrap().len(), 1);
+        drop(s);
+        // The writer migrates a version-0 database itself.
+        let db = dir.join("old2.sqlite");
+        version_0_database(&db);
+        let s = Store::create(&db).unwrap();
+        assert!(s.has_stage_wall && s.has_learning);
+        assert_eq!(s.schema_version().unwrap(), SCHEMA_VERSION);
+        assert_eq!(s.trials().unwrap()[0].stage_wall_seconds, None);
+        drop(s);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_new_database_is_current() {
+        let dir = scratch("new");
+        let s = Store::create(&dir.join("new.sqlite")).unwrap();
+        assert_eq!(s.schema_version().unwrap(), SCHEMA_VERSION);
+        assert!(s.has_stage_wall && s.has_learning);
+        drop(s);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn csv_quoting() {

@@ -379,3 +379,292 @@ fn bad_campaign_file_is_an_error_naming_the_key() {
         assert!(err.contains(key), "expected '{key}' in: {err}");
     }
 }
+
+/// Fig. 8-style campaign: two algorithms (listed against alphabetical order), each
+/// learning population tested with half and all of its best members.
+const ALGORITHMS: &str = r#"
+name = "algorithms"
+tasks = ["foraging"]
+seeds = 2
+x = "sample"
+series = "algorithm"
+[base]
+steps = 50
+[base.world]
+agents = 10
+[[grid]]
+algorithm = ["geese-bt", "betr-geese"]
+sample = [1.0, 0.5]
+"#;
+
+/// The SVG's text elements, in drawing order: (x attribute, text).
+fn svg_texts(svg: &str) -> Vec<(f64, String)> {
+    svg.split("<text ")
+        .skip(1)
+        .map(|el| {
+            let x = el.split("x=\"").nth(1).and_then(|r| r.split('"').next()).expect("x attribute");
+            let body = el.split_once('>').and_then(|(_, b)| b.split("</text>").next()).expect("text body");
+            (x.parse().expect("number"), body.trim().to_string())
+        })
+        .collect()
+}
+
+/// The `x` attributes of the SVG text elements that read exactly `text`.
+fn svg_text_x(svg: &str, text: &str) -> Vec<f64> {
+    svg_texts(svg).into_iter().filter(|(_, t)| t == text).map(|(x, _)| x).collect()
+}
+
+/// Position of the first SVG text element reading exactly `text`, in drawing order.
+fn svg_text_index(svg: &str, text: &str) -> Option<usize> {
+    svg_texts(svg).iter().position(|(_, t)| t == text)
+}
+
+fn svg(dir: &Path, stem: &str) -> String {
+    png_ok(&dir.join(format!("{stem}.png")));
+    std::fs::read_to_string(dir.join(format!("{stem}.svg"))).unwrap_or_else(|e| panic!("{stem}.svg: {e}"))
+}
+
+/// Width of a PNG file.
+fn png_width(path: &Path) -> u32 {
+    let b = std::fs::read(path).expect("png");
+    u32::from_be_bytes([b[16], b[17], b[18], b[19]])
+}
+
+/// Rows of a CSV without quoted fields, as maps from the header's names.
+fn csv_rows(path: &Path) -> Vec<BTreeMap<String, String>> {
+    let text = std::fs::read_to_string(path).expect("csv");
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().expect("header").split(',').collect();
+    lines.map(|l| head.iter().map(|h| h.to_string()).zip(l.split(',').map(str::to_string)).collect()).collect()
+}
+
+#[test]
+fn algorithm_comparison_figures_and_wall_time_per_step() {
+    let c = Campaign::from_toml(ALGORITHMS, "algorithms").expect("campaign");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut store = Store::create(&dir.path().join("a.sqlite")).expect("db");
+    let o = run_campaign(&c, &mut store, &InProcess, &quiet()).expect("campaign");
+    assert_eq!((o.done, o.failed), (8, 0));
+
+    // Every trial has the wall time of its fixed test, and the learning run it tested:
+    // the two sampling sizes of one (algorithm, seed) tested the same learned population.
+    let trials = store.trials().expect("trials");
+    for t in &trials {
+        let wall = t.stage_wall_seconds.expect("stage wall time stored");
+        assert!(wall > 0.0 && wall <= t.wall_seconds, "{wall} vs {}", t.wall_seconds);
+        assert_eq!(t.ms_per_step(), Some(wall * 1000.0 / 50.0));
+    }
+    let mut learning: BTreeMap<i64, Vec<(u64, f64)>> = BTreeMap::new();
+    store.for_each_learning_pct(|id, step, v| learning.entry(id).or_default().push((step, v))).expect("rows");
+    assert_eq!(learning.len(), 8);
+    for t in &trials {
+        let rows = &learning[&t.id];
+        assert_eq!(rows.iter().map(|r| r.0).collect::<Vec<_>>(), (1..=50).collect::<Vec<u64>>());
+        let twin = trials.iter().find(|u| u.series == t.series && u.seed == t.seed && u.id != t.id).expect("twin");
+        assert_ne!(twin.x, t.x);
+        assert_eq!(&learning[&twin.id], rows, "both sampling sizes tested the same learning run");
+    }
+
+    let r = report::build(&store, &ReportOptions::default()).expect("report");
+    // Text series levels in order of first appearance, not alphabetical.
+    assert_eq!(r.series_levels, ["geese-bt", "betr-geese"]);
+    for row in &r.conditions {
+        let ms: Vec<f64> = trials.iter().filter(|t| t.condition == row.label).filter_map(|t| t.ms_per_step()).collect();
+        assert_eq!(ms.len(), 2, "{}", row.label);
+        let s = row.ms_per_step.expect("ms per step");
+        assert!((s.median - (ms[0] + ms[1]) / 2.0).abs() < 1e-9, "{} vs {ms:?}", s.median);
+    }
+    let out = dir.path().join("report");
+    let mut files = r.write_csv(&out).expect("csv");
+    files.extend(r.plot(&store, &out).expect("plots"));
+    let mut names: Vec<String> =
+        files.iter().map(|f| f.file_name().expect("name").to_string_lossy().into_owned()).collect();
+    names.sort();
+    let mut expected: Vec<String> = [
+        "curves-foraging-algorithm-betr-geese",
+        "curves-foraging-algorithm-geese-bt",
+        "final-foraging",
+        "learning-foraging",
+        "resilience-foraging",
+        "walltime-foraging",
+    ]
+    .iter()
+    .flat_map(|s| [format!("{s}.png"), format!("{s}.svg")])
+    .chain(["conditions.csv", "fits.csv", "points.csv", "pooled.csv"].map(String::from))
+    .collect();
+    expected.sort();
+    assert_eq!(names, expected);
+
+    // Fig. 8a: one figure, one curve per algorithm, legend in campaign order.
+    let learn = svg(&out, "learning-foraging");
+    let (bt, betr) = (svg_text_index(&learn, "algorithm = geese-bt"), svg_text_index(&learn, "algorithm = betr-geese"));
+    assert!(bt.is_some() && betr.is_some() && bt < betr, "legend of learning-foraging");
+    // Fig. 8b: sampling sizes on x (by value), boxes of both algorithms.
+    let fin = svg(&out, "final-foraging");
+    let (half, all) = (svg_text_x(&fin, "0.5"), svg_text_x(&fin, "1"));
+    assert!(half.len() == 1 && all.len() == 1 && half[0] < all[0], "{half:?} {all:?}");
+    let legend = |svg: &str| {
+        (svg_text_index(svg, "algorithm = geese-bt").is_some(), svg_text_index(svg, "algorithm = betr-geese").is_some())
+    };
+    assert_eq!(legend(&fin), (true, true));
+    // Fig. 9b: wall time per step.
+    let wall = svg(&out, "walltime-foraging");
+    assert!(svg_text_index(&wall, "wall ms per step").is_some());
+    assert_eq!(legend(&wall), (true, true));
+
+    // The wall-time columns of the tables.
+    let rows = csv_rows(&out.join("conditions.csv"));
+    assert_eq!(rows.len(), 4);
+    for (row, csv) in r.conditions.iter().zip(&rows) {
+        let median: f64 = csv["ms_per_step_median"].parse().expect("ms_per_step_median");
+        assert_eq!(Some(median), row.ms_per_step.map(|s| s.median));
+    }
+    let pooled = csv_rows(&out.join("pooled.csv"));
+    assert_eq!(pooled.iter().map(|r| r["label"].as_str()).collect::<Vec<_>>(), ["0.5", "1"]);
+    assert!(pooled.iter().all(|r| r["ms_per_step_q3"].parse::<f64>().is_ok_and(|v| v > 0.0)));
+    let points = csv_rows(&out.join("points.csv"));
+    assert_eq!(points.len(), 8);
+    for p in &points {
+        let t = trials
+            .iter()
+            .find(|t| t.condition == p["condition"].replace('"', "") && t.seed.to_string() == p["seed"])
+            .expect("trial of the point");
+        assert_eq!(p["ms_per_step"].parse::<f64>().ok(), t.ms_per_step());
+    }
+    let mut text = Vec::new();
+    r.print(&mut text).expect("print");
+    assert!(String::from_utf8_lossy(&text).contains("ms/step"));
+}
+
+/// Fig. 3-style campaign: conditions of two text knobs, on the x axis.
+const TEXT_CONDITIONS: &str = r#"
+name = "fig3-like"
+tasks = ["foraging"]
+seeds = 3
+x = "condition"
+[base]
+steps = 100
+[[grid]]
+algorithm = "geese-bt"
+terms = ["E+C+F", "E+B"]
+[[grid]]
+algorithm = "betr-geese"
+terms = "D+E+B"
+"#;
+
+#[test]
+fn text_conditions_are_ordered_as_written_with_readable_labels() {
+    use geese_orchestrator::metrics;
+    use geese_orchestrator::store::TrialResult;
+    use geese_orchestrator::trial::TrialSummary;
+    let c = Campaign::from_toml(TEXT_CONDITIONS, "fig3-like").expect("campaign");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut store = Store::create(&dir.path().join("t.sqlite")).expect("db");
+    let session = store.begin_session(&c).expect("session");
+    // Stored results made up so that every number is known: condition i, seed s reaches
+    // 10·i + s % and its last stage took (i + 1)·s·0.1 s for 100 steps, (i + 1)·s ms a step.
+    for t in c.plan() {
+        let (i, s) = (t.condition as f64, t.seed as f64);
+        let series: Vec<f64> = (1..=100).map(|k| (10.0 * i + s) * k as f64 / 100.0).collect();
+        let rows: Vec<StepReport> = series
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| StepReport { step: k as u64 + 1, task_pct: v, ..Default::default() })
+            .collect();
+        let summary = TrialSummary { wall_seconds: (i + 1.0) * s * 0.1, ..TrialSummary::new(t.seed) };
+        let result = TrialResult {
+            outcome: metrics::outcome(&series, 80.0),
+            summary: Some(summary),
+            rows,
+            error: None,
+            wall_seconds: 1.0,
+            learning_rows: Vec::new(),
+        };
+        store.insert(&c.record(&t), &result, session, 1.0, "made-up").expect("insert");
+    }
+    let r = report::build(&store, &ReportOptions::default()).expect("report");
+    let labels: Vec<&str> = r.conditions.iter().map(|row| row.label.as_str()).collect();
+    assert_eq!(
+        labels,
+        ["algorithm=geese-bt terms=E+C+F", "algorithm=geese-bt terms=E+B", "algorithm=betr-geese terms=D+E+B"]
+    );
+    let medians: Vec<f64> = r.conditions.iter().map(|row| row.ms_per_step.expect("ms").median).collect();
+    for (m, want) in medians.iter().zip([2.0, 4.0, 6.0]) {
+        assert!((m - want).abs() < 1e-9, "{medians:?}");
+    }
+    let groups: Vec<&str> = r.groups.iter().map(|row| row.label.as_str()).collect();
+    assert_eq!(groups, labels, "pooled by condition, in campaign order");
+
+    let out = dir.path().join("report");
+    r.write_csv(&out).expect("csv");
+    let files = r.plot(&store, &out).expect("plots");
+    assert_eq!(files.len(), 2 * 4, "curves, resilience, final, walltime");
+    let rows = csv_rows(&out.join("conditions.csv"));
+    let csv_medians: Vec<f64> = rows.iter().map(|r| r["ms_per_step_median"].parse().expect("median")).collect();
+    assert_eq!(csv_medians, medians);
+    for stem in ["final-foraging", "walltime-foraging", "resilience-foraging"] {
+        let svg = svg(&out, stem);
+        // One knob per line, never the whole label on one line; left to right as written.
+        assert!(svg_text_index(&svg, "algorithm=geese-bt terms=E+C+F").is_none(), "{stem}");
+        assert_eq!(svg_text_x(&svg, "algorithm=geese-bt").len(), if stem == "resilience-foraging" { 4 } else { 2 });
+        let x = |t: &str| svg_text_x(&svg, t)[0];
+        assert!(x("terms=E+C+F") < x("terms=E+B") && x("terms=E+B") < x("terms=D+E+B"), "{stem}");
+        assert!(x("algorithm=betr-geese") > x("terms=E+B"));
+        // Neighbouring labels do not overlap: ~0.62 em per character at 14 px.
+        let gap = x("terms=E+B") - x("terms=E+C+F");
+        assert!(gap > "algorithm=betr-geese".len() as f64 * 14.0 * 0.62, "{stem}: {gap}");
+    }
+    assert!(png_width(&out.join("final-foraging.png")) > 700);
+    let wall = svg(&out, "walltime-foraging");
+    assert!(svg_text_index(&wall, "wall ms per step").is_some());
+}
+
+/// Fig. 9-style campaign: each algorithm's population tested at its own sampling size,
+/// algorithms on the x axis (no series knob).
+const BEST_POPULATIONS: &str = r#"
+name = "best"
+tasks = ["foraging"]
+seeds = 2
+x = "algorithm"
+[base]
+steps = 50
+[base.world]
+agents = 10
+[[grid]]
+algorithm = "geese-bt"
+sample = 0.5
+[[grid]]
+algorithm = "betr-geese"
+sample = 1.0
+"#;
+
+#[test]
+fn algorithms_on_x_get_one_curve_and_one_box_each() {
+    let c = Campaign::from_toml(BEST_POPULATIONS, "best").expect("campaign");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut store = Store::create(&dir.path().join("b.sqlite")).expect("db");
+    let o = run_campaign(&c, &mut store, &InProcess, &quiet()).expect("campaign");
+    assert_eq!((o.done, o.failed), (4, 0));
+    let r = report::build(&store, &ReportOptions::default()).expect("report");
+    let out = dir.path().join("report");
+    let files = r.plot(&store, &out).expect("plots");
+    let mut stems: Vec<String> =
+        files.iter().map(|f| f.file_stem().expect("stem").to_string_lossy().into_owned()).collect();
+    stems.dedup();
+    assert_eq!(
+        stems,
+        ["curves-foraging", "learning-foraging", "resilience-foraging", "final-foraging", "walltime-foraging"]
+    );
+    for stem in ["curves-foraging", "learning-foraging"] {
+        let svg = svg(&out, stem);
+        let (bt, betr) = (svg_text_index(&svg, "algorithm = geese-bt"), svg_text_index(&svg, "algorithm = betr-geese"));
+        assert!(bt.is_some() && betr.is_some() && bt < betr, "{stem}: one curve per algorithm, in campaign order");
+    }
+    for stem in ["final-foraging", "walltime-foraging"] {
+        let svg = svg(&out, stem);
+        let (bt, betr) = (svg_text_x(&svg, "geese-bt"), svg_text_x(&svg, "betr-geese"));
+        assert!(bt.len() == 1 && betr.len() == 1 && bt[0] < betr[0], "{stem}: {bt:?} {betr:?}");
+    }
+    let ms: Vec<f64> = r.groups.iter().map(|g| g.ms_per_step.expect("ms per step").median).collect();
+    assert!(ms.len() == 2 && ms.iter().all(|&v| v > 0.0), "{ms:?}");
+}
