@@ -512,8 +512,10 @@ impl Population {
     }
 
     /// The members a fixed run of `sample` (a fraction in (0, 1]) uses with `strategy`:
-    /// the best ⌊sample · n⌋, where n counts distinct phenotypes for the Parallel
-    /// strategy (duplicates collapse, §6.8) and members for Top Agents (§7.3).
+    /// the best ⌊sample · n⌋ of the n members; for the Parallel strategy duplicate
+    /// phenotypes collapse first and the best ⌊sample · n⌋ distinct ones are kept (the
+    /// reference takes the ratio of the population size, §6.8), for Top Agents every
+    /// member counts (§7.3).
     pub fn select(&self, sample: f64, strategy: Strategy) -> Result<Vec<FixedMember>, ProgramError> {
         if !(sample > 0.0 && sample <= 1.0) {
             return Err(ProgramError::BadSample(sample));
@@ -522,15 +524,15 @@ impl Population {
             return Err(ProgramError::NoMembers);
         }
         let mut ranked = self.sorted_members();
-        if strategy == Strategy::Parallel {
-            let mut seen = std::collections::HashSet::new();
-            ranked.retain(|m| seen.insert(m.phenotype.as_str()));
-        }
         let k = (sample * ranked.len() as f64 + 1e-9).floor() as usize;
         if k == 0 {
             return Err(ProgramError::EmptySample { sample, members: ranked.len() });
         }
-        Ok(ranked[..k]
+        if strategy == Strategy::Parallel {
+            let mut seen = std::collections::HashSet::new();
+            ranked.retain(|m| seen.insert(m.phenotype.as_str()));
+        }
+        Ok(ranked[..k.min(ranked.len())]
             .iter()
             .map(|m| FixedMember { phenotype: m.phenotype.clone(), gene_dict: m.gene_dict.clone() })
             .collect())
