@@ -784,6 +784,7 @@ fn every_algorithm_and_fixed_populations_equal_their_in_process_runs_over_zenoh(
             &spec,
             &mut |r| reps.push(r.clone()),
             &mut |s, _, p| pops.push((s.stage.to_string(), p.clone())),
+            &mut |_| {},
             None,
         )
         .expect("stages run");
