@@ -723,10 +723,6 @@ impl Learner {
     #[inline]
     fn fitness_now(&self, explore: f64) -> f64 {
         let t = self.terms;
-        if t == FitnessTerms::BETR && self.cfg.fitness == FitnessVariant::Code {
-            // BeTr-GEESE and Multi-GEESE as the reference code computes them.
-            return self.cfg.carry_over * self.carry + explore + self.tree.successful_selectors() as f64;
-        }
         let mut a = match self.cfg.fitness {
             FitnessVariant::Code => self.cfg.carry_over * self.carry,
             FitnessVariant::Paper => self.cfg.carry_over * self.gene.fitness,

@@ -485,8 +485,14 @@ impl Population {
     /// The file text: the header fields one per line, then one member per line (a
     /// genome is a hundred codons; one codon per line made files of megabytes).
     pub fn to_json(&self) -> String {
-        let mut head = Population { members: Vec::new(), ..self.clone() };
-        head.members.clear();
+        let head = Population {
+            grammar: self.grammar.clone(),
+            strategy: self.strategy,
+            algorithm: self.algorithm,
+            phase: self.phase,
+            task: self.task.clone(),
+            members: Vec::new(),
+        };
         let mut out = String::from("{\n");
         if let Ok(serde_json::Value::Object(m)) = serde_json::to_value(&head) {
             for (k, v) in m.iter().filter(|(k, _)| *k != "members") {

@@ -313,14 +313,14 @@ impl Condition {
             c.sample = Some(s);
         }
         if let Some(Level::Text(p)) = self.get(Knob::Population) {
-            c.population = Some(p.replace("{task}", &task.to_string()).into());
+            c.population = Some(p.into());
         }
         if let Some(Level::Text(s)) = self.get(Knob::Strategy) {
             c.strategy = Some(s.parse().map_err(|e: String| knob_err(Knob::Strategy, e))?);
         }
+        // `{task}` in a population path (knob or base) stands for the task.
         if let Some(p) = &c.population {
-            let p = p.to_string_lossy().replace("{task}", &task.to_string());
-            c.population = Some(p.into());
+            c.population = Some(p.to_string_lossy().replace("{task}", &task.to_string()).into());
         }
         // `{task}` in a grammar name (knob or base) stands for the task.
         c.grammar = c.grammar.map(|g| g.replace("{task}", &task.to_string()));

@@ -233,11 +233,19 @@ impl RunConfig {
             (Algorithm::MultiGeese, _) => "collect",
             _ => "learn",
         };
-        self.finish(program, follow_up, stage)
+        let source = format!("of the {} run", self.algorithm);
+        self.finish(program, follow_up, stage, &source)
     }
 
-    /// The spec of a validated config running `program`.
-    fn finish(mut self, program: Program, follow_up: FollowUp, stage: &'static str) -> Result<RunSpec, ConfigError> {
+    /// The spec of a validated config running `program`; a member or GeneDict that does
+    /// not build is reported as coming from `source`.
+    fn finish(
+        mut self,
+        program: Program,
+        follow_up: FollowUp,
+        stage: &'static str,
+        source: &str,
+    ) -> Result<RunSpec, ConfigError> {
         if self.world.percept_reach.is_none() {
             // Trees that may move and then sense, pick up or drop within one tick need
             // the cells around the agent's (BeTr-GEESE trees hold one action).
@@ -251,10 +259,9 @@ impl RunConfig {
         }
         let name = self.grammar_name();
         let (grammar, text) = load_grammar(&name)?;
-        program.prepare(task_name(self.world.task)).map_err(|e| ConfigError::Population {
-            path: format!("of the {} run", self.algorithm),
-            message: e.to_string(),
-        })?;
+        program
+            .prepare(task_name(self.world.task))
+            .map_err(|e| ConfigError::Population { path: source.into(), message: e.to_string() })?;
         let learner = Arc::new(self.learner.clone());
         Ok(RunSpec {
             config: self,
@@ -289,9 +296,7 @@ impl RunConfig {
         let strategy = self.strategy.or(pop.strategy).unwrap_or(algorithm.default_strategy());
         let members = pop.select(self.sample.unwrap_or(1.0), strategy).map_err(|e| perr(e.to_string()))?;
         self.lateral_transfer = false;
-        let program = Program::Fixed { strategy, members };
-        program.prepare(task_name(self.world.task)).map_err(|e| perr(e.to_string()))?;
-        self.finish(program, FollowUp::None, "fixed")
+        self.finish(Program::Fixed { strategy, members }, FollowUp::None, "fixed", path)
     }
 }
 
@@ -331,7 +336,7 @@ impl RunSpec {
                 let follow_up = if c.sample.is_some() { FollowUp::FixedTest } else { FollowUp::None };
                 let program =
                     Program::Learn { algorithm: Algorithm::MultiGeese, phase: Some(Phase::Combine), gene_dicts: dicts };
-                c.finish(program, follow_up, "combine").map(Some)
+                c.finish(program, follow_up, "combine", "of the collect phase").map(Some)
             }
             FollowUp::FixedTest => {
                 // The fixed-agent world of REFERENCE §1.4: paper layout, agents at the hub.

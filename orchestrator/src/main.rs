@@ -8,9 +8,12 @@ use geese_agent::bt::Bt;
 use geese_agent::ge::{self, GeParams};
 use geese_agent::FitnessVariant;
 use geese_agent::Program;
+use geese_orchestrator::campaign::{run_stages, TrialError, TrialRunner};
 use geese_orchestrator::config::{load_grammar, FollowUp, RunConfig};
 use geese_orchestrator::output::{write_manifest, StepCsv};
+use geese_orchestrator::trial::Ran;
 use geese_orchestrator::{bench, Trial};
+use geese_proto::StepReport;
 use geese_world::{Layout, Task};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -328,29 +331,62 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
 fn run_cmd(a: RunArgs) -> Result<()> {
     let cfg = a.net.apply(a.resolve()?);
     let net = a.net.options()?;
-    let mut spec = cfg.validate()?;
+    let spec = cfg.validate()?;
     let c = &spec.config;
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}-seed{}", c.world.task, c.seed)));
-    // Stage by stage: a Multi-GEESE collect phase before its combine phase, a learning
-    // run before the fixed test of its population. The last stage writes into `out`,
-    // earlier ones into `out/<stage>`.
-    loop {
-        let dir = if spec.follow_up == FollowUp::None { out.clone() } else { out.join(spec.stage) };
+    // Stage by stage (run_stages): a Multi-GEESE collect phase before its combine
+    // phase, a learning run before the fixed test of its population. The last stage
+    // writes into `out`, earlier ones into `out/<stage>`.
+    let runner = CliRunner { out, net, quiet: a.quiet };
+    let mut written: Result<()> = Ok(());
+    let mut write_population = |s: &geese_orchestrator::RunSpec, _: &Ran, pop: &geese_agent::Population| {
+        if s.program.is_fixed() || written.is_err() {
+            return;
+        }
+        let path = runner.dir(s).join("population.json");
+        written = std::fs::write(&path, pop.to_json()).with_context(|| format!("cannot write {}", path.display()));
+        println!("population: {} ({} members)", path.display(), pop.members.len());
+    };
+    run_stages(&runner, &spec, &mut |_| {}, &mut write_population, &mut |_| {}, None)
+        .map_err(|e| anyhow::anyhow!(e))?;
+    written
+}
+
+/// `geese run`'s stages: each writes its results into its own directory and prints its
+/// lines, in this process or over Zenoh.
+struct CliRunner {
+    out: PathBuf,
+    net: Option<geese_orchestrator::launch::NetOptions>,
+    quiet: bool,
+}
+
+impl CliRunner {
+    fn dir(&self, spec: &geese_orchestrator::RunSpec) -> PathBuf {
+        if spec.follow_up == FollowUp::None {
+            self.out.clone()
+        } else {
+            self.out.join(spec.stage)
+        }
+    }
+}
+
+impl TrialRunner for CliRunner {
+    fn transport(&self) -> &str {
+        if self.net.is_some() {
+            "zenoh"
+        } else {
+            "in-process"
+        }
+    }
+
+    fn run(&self, spec: &geese_orchestrator::RunSpec, _: &mut dyn FnMut(&StepReport)) -> Result<Ran, TrialError> {
+        let dir = self.dir(spec);
         std::fs::create_dir_all(&dir).with_context(|| format!("cannot create output directory {}", dir.display()))?;
-        let members = match &net {
-            Some(opts) => net_run_cmd(&spec, opts, &dir, a.quiet)?,
-            None => in_process_run(&spec, &dir, a.quiet)?,
+        let ran = match &self.net {
+            Some(opts) => net_run_cmd(spec, opts, &dir, self.quiet)?,
+            None => in_process_run(spec, &dir, self.quiet)?,
         };
-        let pop = spec.population(members);
-        if !spec.program.is_fixed() {
-            let path = dir.join("population.json");
-            std::fs::write(&path, pop.to_json()).with_context(|| format!("cannot write {}", path.display()))?;
-            println!("population: {} ({} members)", path.display(), pop.members.len());
-        }
-        match spec.next_stage(&pop)? {
-            Some(next) => spec = next,
-            None => return Ok(()),
-        }
+        Ok(ran)
     }
 }
 
@@ -371,11 +407,7 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
 }
 
 /// One stage in this process; returns the population its agents ended with.
-fn in_process_run(
-    spec: &geese_orchestrator::RunSpec,
-    out: &std::path::Path,
-    quiet: bool,
-) -> Result<Vec<geese_agent::program::Member>> {
+fn in_process_run(spec: &geese_orchestrator::RunSpec, out: &std::path::Path, quiet: bool) -> Result<Ran> {
     let c = &spec.config;
     let csv_path = out.join("steps.csv");
     let mut csv = StepCsv::create(&csv_path).with_context(|| format!("cannot write {}", csv_path.display()))?;
@@ -407,7 +439,7 @@ fn in_process_run(
     }
     println!("wall time: {:.2} s", summary.wall_seconds);
     println!("results: {} and {}", csv_path.display(), out.join("manifest.json").display());
-    Ok(trial.members())
+    Ok(Ran { summary, members: trial.members() })
 }
 
 /// `geese run --processes N`: the same stage as separate processes over Zenoh.
@@ -416,7 +448,7 @@ fn net_run_cmd(
     opts: &geese_orchestrator::launch::NetOptions,
     out: &std::path::Path,
     quiet: bool,
-) -> Result<Vec<geese_agent::program::Member>> {
+) -> Result<Ran> {
     let c = &spec.config;
     eprintln!("{}", describe(spec, &format!(" in {} agent processes over Zenoh", opts.processes)));
     let o = geese_orchestrator::launch::run_cli(spec, opts, out, quiet)?;
@@ -440,7 +472,7 @@ fn net_run_cmd(
         out.join("net.csv").display(),
         out.join("manifest.json").display()
     );
-    Ok(o.members)
+    Ok(Ran { summary: o.summary.clone(), members: o.members })
 }
 
 fn bench_cmd(a: BenchArgs) -> Result<()> {
