@@ -7,6 +7,7 @@
 use crate::ge::{CompositeKind, PNode};
 use crate::leaves::{Leaf, LeafError, LeafSpec};
 use crate::view::View;
+use geese_proto::BehaviourClass;
 use rand::Rng;
 use std::fmt::Write;
 use std::sync::Arc;
@@ -304,6 +305,21 @@ impl Bt {
             Kind::Leaf(l, _) => Some(l),
             _ => None,
         })
+    }
+
+    /// The tree's behaviour class (REFERENCE §8.3): the first of Explore,
+    /// CompositeSingleCarry, CompositeDrop, MoveTowards, MoveAway among its leaves, in
+    /// that priority order, whatever their position in the tree.
+    pub fn behaviour_class(&self) -> BehaviourClass {
+        let rank = |l: &Leaf| match l {
+            Leaf::Explore(_) => Some(BehaviourClass::Explore),
+            Leaf::CompositeSingleCarry(_) => Some(BehaviourClass::CompositeSingleCarry),
+            Leaf::CompositeDrop(_) => Some(BehaviourClass::CompositeDrop),
+            Leaf::MoveTowards(..) => Some(BehaviourClass::MoveTowards),
+            Leaf::MoveAway(..) => Some(BehaviourClass::MoveAway),
+            _ => None,
+        };
+        self.leaves().filter_map(rank).min_by_key(|c| c.number()).unwrap_or(BehaviourClass::None)
     }
 
     /// Status of the root after the last tick.

@@ -19,7 +19,8 @@ use crate::program::{FitnessTerms, GeneDict, Role, StoredGene};
 use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
-    AgentId, AgentStats, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept, Regime,
+    AgentId, AgentStats, BehaviourClass, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept,
+    Regime,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -242,6 +243,8 @@ pub struct Learner {
     gene: Individual,
     gene_digest: u64,
     tree: Bt,
+    /// The current tree's behaviour class, kept with the tree (it changes only with it).
+    class: BehaviourClass,
     pool: Vec<Individual>,
     /// Carry-over value R: the previous gene's fitness when it was replaced.
     carry: f64,
@@ -559,6 +562,7 @@ impl Learner {
             gene_d,
             gene_digest: genome_digest(&gene.genome),
             gene,
+            class: tree.behaviour_class(),
             tree,
             pool: Vec::new(),
             carry: 0.0,
@@ -752,6 +756,7 @@ impl Learner {
     fn intent(&mut self, mut stats: AgentStats) -> Intent {
         stats.fitness = self.gene.fitness;
         stats.gene_digest = self.gene_digest;
+        stats.class = self.class;
         Intent {
             step: self.step,
             agent: self.id,
@@ -898,6 +903,7 @@ impl Learner {
         self.view.delivered = 0;
         self.gene_digest = genome_digest(&winner.genome);
         self.gene = winner;
+        self.class = tree.behaviour_class();
         self.tree = tree;
         self.visited.clear();
         self.age = 0;

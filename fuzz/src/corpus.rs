@@ -14,8 +14,8 @@ use geese_proto::net::{
     LossRates, NetCounters, NetReport, NetRunSpec, Raw, ReportMsg, RunInfo, Tick, AHEAD_CELL, NO_CELL,
 };
 use geese_proto::{
-    encode, AgentPublic, AgentStats, Control, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo,
-    ObjectKind, Op, Percept, Perturbation, Pos, Regime, StepReport,
+    encode, AgentPublic, AgentStats, BehaviourClass, Control, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent,
+    ObjectInfo, ObjectKind, Op, Percept, Perturbation, Pos, Regime, StepReport,
 };
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -146,6 +146,7 @@ fn intents() -> Vec<IntentBatch> {
         fitness: k as f64 * 0.5,
         gene_digest: 0x1234_5678_9abc_def0 ^ k as u64,
         genes_lost: k % 2,
+        class: BehaviourClass::ALL[k as usize % BehaviourClass::ALL.len()],
     };
     let intent = |k: u32| Intent {
         step: 7,

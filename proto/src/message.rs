@@ -288,6 +288,53 @@ pub struct AgentStats {
     pub gene_digest: u64,
     /// Gene messages this agent expected but did not get (lost or late).
     pub genes_lost: u32,
+    /// The behaviour class of the agent's current tree (REFERENCE §8.3), for the
+    /// locality map and the live view: the world cannot derive it, it never sees trees.
+    pub class: BehaviourClass,
+}
+
+/// What an agent's current behaviour tree mostly does, as REFERENCE §8.3 classifies it
+/// for the locality map (Fig. 5): the first of Explore, CompositeSingleCarry,
+/// CompositeDrop, MoveTowards, MoveAway its leaves contain, else `None`. The numbers are
+/// the reference's class numbers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[repr(u8)]
+pub enum BehaviourClass {
+    #[default]
+    None = 0,
+    Explore = 1,
+    CompositeSingleCarry = 2,
+    CompositeDrop = 3,
+    MoveTowards = 4,
+    MoveAway = 5,
+}
+
+impl BehaviourClass {
+    /// Every class, in the reference's number order.
+    pub const ALL: [BehaviourClass; 6] = [
+        BehaviourClass::None,
+        BehaviourClass::Explore,
+        BehaviourClass::CompositeSingleCarry,
+        BehaviourClass::CompositeDrop,
+        BehaviourClass::MoveTowards,
+        BehaviourClass::MoveAway,
+    ];
+
+    /// The reference's class number (0–5).
+    pub fn number(self) -> u8 {
+        self as u8
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            BehaviourClass::None => "None",
+            BehaviourClass::Explore => "Explore",
+            BehaviourClass::CompositeSingleCarry => "CompositeSingleCarry",
+            BehaviourClass::CompositeDrop => "CompositeDrop",
+            BehaviourClass::MoveTowards => "MoveTowards",
+            BehaviourClass::MoveAway => "MoveAway",
+        }
+    }
 }
 
 /// What an agent decided for step `step`.

@@ -4,8 +4,8 @@ use crate::config::{ConfigError, Task, WorldConfig};
 use geese_proto::rules::{self, DropOutcome};
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
-    AgentId, AgentPublic, CellIdx, GeneticTrigger, Geometry, Intent, ObjectId, ObjectInfo, ObjectKind, Op, Percept,
-    Perturbation, Pos, Regime, StepReport,
+    AgentId, AgentPublic, BehaviourClass, CellIdx, GeneticTrigger, Geometry, Intent, ObjectId, ObjectInfo, ObjectKind,
+    Op, Percept, Perturbation, Pos, Regime, StepReport,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -32,6 +32,8 @@ pub struct Body {
     pub carrying: Vec<ObjectId>,
     pub live: bool,
     pub learning: bool,
+    /// The behaviour class its last intent reported (for the view and locality map).
+    pub class: BehaviourClass,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -160,7 +162,15 @@ impl World {
 
     pub(crate) fn add_body(&mut self, pos: Pos, heading: f64) {
         let id = self.bodies.len() as AgentId;
-        self.bodies.push(Body { id, pos, heading, carrying: Vec::new(), live: true, learning: true });
+        self.bodies.push(Body {
+            id,
+            pos,
+            heading,
+            carrying: Vec::new(),
+            live: true,
+            learning: true,
+            class: BehaviourClass::None,
+        });
         self.register_agent(id);
     }
 
@@ -382,7 +392,9 @@ impl World {
                 Err(_) => refused += 1,
             }
         }
-        self.bodies[id as usize].heading = intent.heading.rem_euclid(std::f64::consts::TAU);
+        let b = &mut self.bodies[id as usize];
+        b.heading = intent.heading.rem_euclid(std::f64::consts::TAU);
+        b.class = intent.stats.class;
         Ok(refused)
     }
 

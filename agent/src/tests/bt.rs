@@ -296,3 +296,19 @@ fn paper_feedback_terms() {
     assert_eq!(tick(&mut bt, &[X, X, T]).0, S);
     assert_eq!(bt.paper_feedback(), 2.0);
 }
+
+/// REFERENCE §8.3: a tree's behaviour class is the first of Explore,
+/// CompositeSingleCarry, CompositeDrop, MoveTowards, MoveAway among its leaves in that
+/// priority order, not in tree order; a tree with none of them is class 0.
+#[test]
+fn behaviour_class_follows_the_priority_order_not_the_tree_order() {
+    use geese_proto::BehaviourClass as K;
+    let class = |leaves: &[&str]| tree(seq(leaves.iter().map(|l| leaf(l)).collect())).behaviour_class();
+    assert_eq!(class(&[A, B]), K::None);
+    assert_eq!(class(&["MoveAway_Hub"]), K::MoveAway);
+    assert_eq!(class(&["MoveAway_Hub", "MoveTowards_Sites"]), K::MoveTowards);
+    assert_eq!(class(&["MoveTowards_Sites", "CompositeDrop_Food"]), K::CompositeDrop);
+    assert_eq!(class(&["CompositeDrop_Food", "CompositeSingleCarry_Food"]), K::CompositeSingleCarry);
+    assert_eq!(class(&["MoveAway_Hub", "CompositeSingleCarry_Food", "Explore_0"]), K::Explore);
+    assert_eq!(K::ALL.iter().map(|k| k.number()).collect::<Vec<_>>(), vec![0, 1, 2, 3, 4, 5]);
+}
