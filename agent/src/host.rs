@@ -272,6 +272,12 @@ impl Host {
         self.learners.iter().map(Learner::member).collect()
     }
 
+    /// The live viewer's detail of agent `id`, if this process hosts it.
+    pub fn detail(&self, id: AgentId) -> Option<geese_proto::view::AgentDetail> {
+        let i = id.checked_sub(self.range.first)? as usize;
+        self.learners.get(i).map(Learner::detail)
+    }
+
     /// The agents this process speaks for.
     pub fn range(&self) -> AgentRange {
         self.range

@@ -605,6 +605,21 @@ impl Learner {
     }
 
     /// The GeneDict (Multi-GEESE learners).
+    /// What the live viewer shows of this agent when clicked.
+    pub fn detail(&self) -> geese_proto::view::AgentDetail {
+        geese_proto::view::AgentDetail {
+            id: self.id,
+            phenotype: self.gene.phenotype.as_deref().unwrap_or_default().to_string(),
+            fitness: self.gene.fitness,
+            class: self.class,
+            tree: self.tree.render(),
+            controllers: self
+                .gene_dict()
+                .map(|d| d.iter().map(|(k, g)| (k.clone(), g.phenotype.to_string())).collect())
+                .unwrap_or_default(),
+        }
+    }
+
     pub fn gene_dict(&self) -> Option<&GeneDict> {
         match &self.kind {
             Kind::Collect(d) => Some(d),

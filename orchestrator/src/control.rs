@@ -41,6 +41,12 @@ pub enum ControlCmd {
     },
     /// Stop the run after the current step (every process exits).
     Stop,
+    /// Hold the run between two steps (the live viewer's Pause).
+    Pause,
+    /// Go on after a pause.
+    Resume,
+    /// Make at most RATE steps per second (0: no limit).
+    StepRate { rate: f64 },
 }
 
 /// Exactly one change.
@@ -125,6 +131,12 @@ impl ChangeArgs {
 pub fn message(cmd: &ControlCmd, next_step: u64, geom: &Geometry) -> Result<(&'static str, Control)> {
     match cmd {
         ControlCmd::Stop => Ok(("stop", Control::Stop)),
+        ControlCmd::Pause => Ok(("view", Control::Pause)),
+        ControlCmd::Resume => Ok(("view", Control::Resume)),
+        ControlCmd::StepRate { rate } => {
+            geese_proto::limits::check_step_rate(*rate).map_err(|e| anyhow::anyhow!("step-rate: {e}"))?;
+            Ok(("view", Control::StepRate(*rate)))
+        }
         ControlCmd::Perturb { at, change } => {
             let change = change.perturbation()?;
             let at_step = at.unwrap_or(next_step);
@@ -224,5 +236,9 @@ mod tests {
         let past = ControlCmd::Perturb { at: Some(10), change: ChangeArgs { ip: Some(0.5), ..change() } };
         assert!(message(&past, 42, &arena()).unwrap_err().to_string().contains("already at step 42"));
         assert_eq!(message(&ControlCmd::Stop, 7, &arena()).unwrap(), ("stop", Control::Stop));
+        assert_eq!(message(&ControlCmd::Pause, 7, &arena()).unwrap(), ("view", Control::Pause));
+        let rate = |rate| message(&ControlCmd::StepRate { rate }, 7, &arena());
+        assert_eq!(rate(12.5).unwrap(), ("view", Control::StepRate(12.5)));
+        assert!(rate(-1.0).unwrap_err().to_string().starts_with("step-rate: StepRate -1"));
     }
 }

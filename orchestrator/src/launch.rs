@@ -91,6 +91,10 @@ pub struct NetOptions {
     pub stall: Duration,
     /// Discard the children's stderr.
     pub quiet_children: bool,
+    /// Serve the live viewer on 127.0.0.1 at this port (0: any free one).
+    pub view: Option<u16>,
+    /// A step-rate limit asked of the world from the start (the viewer's control).
+    pub step_rate: Option<f64>,
 }
 
 impl Default for NetOptions {
@@ -109,6 +113,8 @@ impl Default for NetOptions {
             restart_at: Vec::new(),
             stall: Duration::from_secs(60),
             quiet_children: false,
+            view: None,
+            step_rate: None,
         }
     }
 }
@@ -384,6 +390,14 @@ pub fn run_net(
     rt.block_on(run_net_async(spec, opts, observe))
 }
 
+/// The pace the viewer last asked of the world, as the launcher saw it go by.
+struct PaceSeen {
+    paused: bool,
+    rate: f64,
+    /// When it last changed.
+    at: Instant,
+}
+
 enum Ev {
     Report(Vec<u8>),
     WorldGone,
@@ -475,19 +489,44 @@ async fn run_net_async(
         .map_err(zerr)?;
     // Record what is scheduled on the control plane while the run goes on, so the
     // manifest says how the run was perturbed.
+    // The viewer's pace commands too: a paused run sends no reports, and must not be
+    // taken for a stalled one.
     let control_log = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Control>::new()));
-    let log = control_log.clone();
+    let pace = std::sync::Arc::new(std::sync::Mutex::new(PaceSeen { paused: false, rate: 0.0, at: Instant::now() }));
+    let (log, p) = (control_log.clone(), pace.clone());
     let _control = session
-        .declare_subscriber(keys::ctl(&run, "schedule"))
+        .declare_subscriber(keys::all_ctl(&run))
         .callback(move |s| {
-            if let Ok(c @ Control::Schedule { .. }) = decode::<Control>(&s.payload().to_bytes()) {
-                if let Ok(mut l) = log.lock() {
-                    l.push(c);
-                }
+            let Ok(c) = decode::<Control>(&s.payload().to_bytes()) else { return };
+            let mut pace = p.lock().unwrap_or_else(|e| e.into_inner());
+            match c {
+                Control::Schedule { .. } => log.lock().unwrap_or_else(|e| e.into_inner()).push(c),
+                Control::Pause => pace.paused = true,
+                Control::Resume => pace.paused = false,
+                Control::StepRate(r) if r.is_finite() && r >= 0.0 => pace.rate = r,
+                _ => return,
             }
+            pace.at = Instant::now();
         })
         .await
         .map_err(zerr)?;
+    let view = match opts.view {
+        Some(port) => {
+            let v = crate::view::ZenohView::attach(&session, &run, port)
+                .await
+                .map_err(|e| LaunchError::Invalid(format!("viewer: {e}")))?;
+            println!("view: {}", v.url());
+            Some(v)
+        }
+        None => None,
+    };
+    if let Some(r) = opts.step_rate {
+        // The world listens to the control plane before it announces itself: this
+        // reaches it before the first step.
+        geese_proto::limits::check_step_rate(r).map_err(|e| LaunchError::Invalid(format!("--step-rate: {e}")))?;
+        let bytes = encode(&Control::StepRate(r)).map_err(|e| LaunchError::Invalid(e.to_string()))?;
+        zenoh_bus::put(&session, &keys::ctl(&run, "view"), bytes).await?;
+    }
     let t = tx.clone();
     let run2 = run.clone();
     let _presence = session
@@ -549,14 +588,30 @@ async fn run_net_async(
     // once it is gone, give the reports a moment to land before concluding.
     let mut world_gone: Option<Instant> = None;
     loop {
-        let patience = if first_report.is_some() { opts.stall } else { join_patience };
-        let mut left = (last_report + patience).saturating_duration_since(Instant::now());
+        let mut patience = if first_report.is_some() { opts.stall } else { join_patience };
+        let (since, held) = {
+            // Held by the viewer: no patience runs out while paused (look again each
+            // second); otherwise it counts from the last pace change, and a step may take
+            // as long as the rate limit says.
+            let p = pace.lock().unwrap_or_else(|e| e.into_inner());
+            if p.rate > 0.0 {
+                patience += Duration::from_secs_f64(1.0 / p.rate);
+            }
+            if p.paused {
+                patience = Duration::from_secs(1);
+            }
+            (if p.paused { Instant::now() } else { last_report.max(p.at) }, p.paused)
+        };
+        let mut left = (since + patience).saturating_duration_since(Instant::now());
         if let Some(g) = world_gone {
             left = left.min((g + Duration::from_secs(2)).saturating_duration_since(Instant::now()));
         }
         let ev = tokio::select! {
             ev = rx.recv() => ev,
             _ = tokio::time::sleep(left) => {
+                if held && world_gone.is_none() {
+                    continue;
+                }
                 outcome = Err(if world_gone.is_some() {
                     LaunchError::WorldGone(summary.steps)
                 } else {
@@ -625,6 +680,7 @@ async fn run_net_async(
             let _ = zenoh_bus::put(&session, &keys::ctl(&run, "stop"), b).await;
         }
     }
+    drop(view);
     let _ = token.undeclare().await;
     swarm.shutdown(Duration::from_secs(if outcome.is_ok() { 15 } else { 5 })).await;
     let _ = session.close().await;

@@ -18,6 +18,8 @@
 //!   summary statistics and least-squares slopes; pure functions.
 //! - [`report`]: metric tables and figures from a results database.
 //! - [`plot`]: PNG/SVG figures (learning curves, resilience scatters, box plots).
+//! - [`view`]: the live viewer's web server and page (`geese view`, `geese run --view`).
+//! - [`watch`]: an in-process run with the viewer attached.
 // Doc comments of clap arguments are also `--help` text, where `<run>` or `<db>` reads
 // as a placeholder; rustdoc would take them for HTML tags.
 #![allow(rustdoc::invalid_html_tags)]
@@ -34,6 +36,8 @@ pub mod plot;
 pub mod report;
 pub mod store;
 pub mod trial;
+pub mod view;
+pub mod watch;
 
 pub use config::{RunConfig, RunSpec};
 pub use trial::{run_trial, Trial, TrialSummary};

@@ -52,6 +52,9 @@ enum Cmd {
     Export(ExportArgs),
     /// Send a perturbation or stop to a running distributed world (control plane).
     Control(geese_orchestrator::control::ControlArgs),
+    /// Watch a running distributed run in the browser (a read-only client of its bus;
+    /// its controls go through the control plane).
+    View(geese_orchestrator::view::ViewArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -137,6 +140,16 @@ struct RunArgs {
     /// No progress bar.
     #[arg(long, short)]
     quiet: bool,
+    /// Serve a live view of the run on http://127.0.0.1:PORT (printed at start).
+    #[arg(long)]
+    view: bool,
+    /// The viewer's port (0: any free one).
+    #[arg(long, default_value_t = 0, requires = "view")]
+    view_port: u16,
+    /// With --view: make at most this many steps per second from the start (the page
+    /// can change it; 0 = no limit).
+    #[arg(long, requires = "view")]
+    step_rate: Option<f64>,
     /// Distributed mode (issue 3): --processes N and its options.
     #[command(flatten)]
     net: Box<geese_orchestrator::launch::NetArgs>,
@@ -330,14 +343,27 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
 
 fn run_cmd(a: RunArgs) -> Result<()> {
     let cfg = a.net.apply(a.resolve()?);
-    let net = a.net.options()?;
+    let mut net = a.net.options()?;
+    if let Some(n) = net.as_mut() {
+        n.view = a.view.then_some(a.view_port);
+        n.step_rate = a.step_rate;
+    }
     let spec = cfg.validate()?;
     let c = &spec.config;
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}-seed{}", c.world.task, c.seed)));
     // Stage by stage (run_stages): a Multi-GEESE collect phase before its combine
     // phase, a learning run before the fixed test of its population. The last stage
     // writes into `out`, earlier ones into `out/<stage>`.
-    let runner = CliRunner { out, net, quiet: a.quiet };
+    let watch = match (a.view, &net) {
+        (false, _) => None,
+        (true, Some(_)) => None,
+        (true, None) => {
+            let w = geese_orchestrator::watch::Watch::start(a.view_port, a.step_rate)?;
+            println!("view: {}", w.url());
+            Some(w)
+        }
+    };
+    let runner = CliRunner { out, net, quiet: a.quiet, watch: std::sync::Mutex::new(watch) };
     let mut written: Result<()> = Ok(());
     let mut write_population = |s: &geese_orchestrator::RunSpec, _: &Ran, pop: &geese_agent::Population| {
         if s.program.is_fixed() || written.is_err() {
@@ -358,6 +384,8 @@ struct CliRunner {
     out: PathBuf,
     net: Option<geese_orchestrator::launch::NetOptions>,
     quiet: bool,
+    /// The live viewer of an in-process run (`--view`), shared by its stages.
+    watch: std::sync::Mutex<Option<geese_orchestrator::watch::Watch>>,
 }
 
 impl CliRunner {
@@ -384,7 +412,10 @@ impl TrialRunner for CliRunner {
         std::fs::create_dir_all(&dir).with_context(|| format!("cannot create output directory {}", dir.display()))?;
         let ran = match &self.net {
             Some(opts) => net_run_cmd(spec, opts, &dir, self.quiet)?,
-            None => in_process_run(spec, &dir, self.quiet)?,
+            None => {
+                let mut watch = self.watch.lock().unwrap_or_else(|e| e.into_inner());
+                in_process_run(spec, &dir, self.quiet, watch.as_mut())?
+            }
         };
         Ok(ran)
     }
@@ -407,7 +438,12 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
 }
 
 /// One stage in this process; returns the population its agents ended with.
-fn in_process_run(spec: &geese_orchestrator::RunSpec, out: &std::path::Path, quiet: bool) -> Result<Ran> {
+fn in_process_run(
+    spec: &geese_orchestrator::RunSpec,
+    out: &std::path::Path,
+    quiet: bool,
+    mut watch: Option<&mut geese_orchestrator::watch::Watch>,
+) -> Result<Ran> {
     let c = &spec.config;
     let csv_path = out.join("steps.csv");
     let mut csv = StepCsv::create(&csv_path).with_context(|| format!("cannot write {}", csv_path.display()))?;
@@ -419,13 +455,26 @@ fn in_process_run(spec: &geese_orchestrator::RunSpec, out: &std::path::Path, qui
     );
     let start = std::time::Instant::now();
     let mut trial = Trial::new(spec)?;
+    let mut last: Option<StepReport> = None;
     for _ in 0..c.steps {
+        if let Some(w) = watch.as_deref_mut() {
+            if !w.before_step(&mut trial, last.as_ref(), c.steps) {
+                break;
+            }
+        }
         let rep = trial.step();
         csv.write(&rep)?;
         if rep.step % 50 == 0 {
             bar.set_position(rep.step);
             bar.set_message(format!("{:.2} %", rep.task_pct));
         }
+        if let Some(w) = watch.as_deref_mut() {
+            w.after_step(&trial, &rep, c.steps);
+        }
+        last = Some(rep);
+    }
+    if let (Some(w), Some(rep)) = (watch, &last) {
+        w.finish(&trial, rep, c.steps);
     }
     bar.finish_and_clear();
     csv.finish()?;
@@ -563,5 +612,6 @@ fn main() -> Result<()> {
         Cmd::Report(a) => campaign_cli::report_cmd(a),
         Cmd::Export(a) => campaign_cli::export_cmd(a),
         Cmd::Control(a) => geese_orchestrator::control::control_cmd(a),
+        Cmd::View(a) => geese_orchestrator::view::view_cmd(a),
     }
 }

@@ -194,6 +194,23 @@ pub fn cells_presence(run: &str, agents: AgentRange) -> String {
     format!("geese/{run}/presence/cells/{agents}")
 }
 
+/// Liveliness token of a live viewer (`geese view`, `geese run --view`): while one is
+/// present the world publishes [`view_frame`]s.
+pub fn viewer_presence(run: &str, name: &str) -> String {
+    format!("geese/{run}/presence/viewer/{name}")
+}
+
+/// The live viewer's frames ([`crate::view::ViewFrame`]).
+pub fn view_frame(run: &str) -> String {
+    format!("geese/{run}/view/frame")
+}
+
+/// Queried for an agent's [`crate::view::AgentDetail`]; answered by the process that
+/// hosts the agent.
+pub fn agent_detail(run: &str, id: u32) -> String {
+    format!("geese/{run}/agent/{id}/detail")
+}
+
 /// Every liveliness token of a run.
 pub fn all_presence(run: &str) -> String {
     format!("geese/{run}/presence/**")
@@ -236,6 +253,8 @@ pub enum Parsed {
     CellsPresence {
         agents: AgentRange,
     },
+    /// [`viewer_presence`].
+    ViewerPresence,
     Other,
 }
 
@@ -247,7 +266,11 @@ impl Parsed {
             Parsed::Action { from } | Parsed::GeneBundle { from } => Some(from),
             Parsed::HostPercepts { to } | Parsed::HostGenes { to } => Some(to),
             Parsed::AgentsPresence { agents } | Parsed::CellsPresence { agents } => Some(agents),
-            Parsed::Percept { .. } | Parsed::WorldPresence | Parsed::OrchestratorPresence | Parsed::Other => None,
+            Parsed::Percept { .. }
+            | Parsed::WorldPresence
+            | Parsed::OrchestratorPresence
+            | Parsed::ViewerPresence
+            | Parsed::Other => None,
         }
     }
 
@@ -310,6 +333,7 @@ pub fn parse(run: &str, key: &str) -> Parsed {
             Some(agents) => Parsed::CellsPresence { agents },
             None => Parsed::Other,
         },
+        ["presence", "viewer", _] => Parsed::ViewerPresence,
         _ => Parsed::Other,
     }
 }

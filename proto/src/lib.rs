@@ -17,6 +17,7 @@
 //! - [`membus`]: the in-memory transport.
 //! - [`seed`]: named random streams and portable digests.
 //! - [`net`]: the extra messages of the distributed runtime (ticks, batches, run info).
+//! - [`view`]: the frames and agent details the live viewer shows.
 //! - `zenoh_bus` (feature `zenoh`): the Zenoh transport — session configuration, the
 //!   command-line arguments every process shares, publication helpers.
 pub mod codec;
@@ -28,6 +29,7 @@ pub mod message;
 pub mod net;
 pub mod rules;
 pub mod seed;
+pub mod view;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_bus;
 

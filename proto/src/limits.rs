@@ -62,6 +62,16 @@ pub fn check_unit(field: &'static str, value: f64) -> Result<(), InvalidCommand>
     }
 }
 
+/// A step-rate limit must be a finite number of steps per second in
+/// [0, [`crate::view::MAX_STEP_RATE`]] (0: no limit).
+pub fn check_step_rate(r: f64) -> Result<(), InvalidCommand> {
+    if r.is_finite() && (0.0..=crate::view::MAX_STEP_RATE).contains(&r) {
+        Ok(())
+    } else {
+        Err(InvalidCommand::new("StepRate", r, format!("is not in [0, {}] steps/s", crate::view::MAX_STEP_RATE)))
+    }
+}
+
 /// `value` must not exceed `max`.
 pub fn check_max<T: PartialOrd + std::fmt::Display>(
     field: &'static str,
@@ -97,6 +107,23 @@ impl Perturbation {
                 }
                 Ok(())
             }
+            Perturbation::AddObstacleAt { x, y, radius } => {
+                if radius < 1 {
+                    return Err(InvalidCommand::new("AddObstacleAt.radius", radius, "is below 1"));
+                }
+                let max = max_radius(geom);
+                if radius > max {
+                    return Err(InvalidCommand::new("AddObstacleAt.radius", radius, format!("exceeds {max}")));
+                }
+                if !geom.contains(crate::Pos::new(x, y)) {
+                    return Err(InvalidCommand::new(
+                        "AddObstacleAt",
+                        format!("({x}, {y})"),
+                        format!("is outside the {}x{} arena", geom.width, geom.height),
+                    ));
+                }
+                Ok(())
+            }
             Perturbation::SetIp(ip) => check_unit("SetIp", ip),
             Perturbation::SetLateralTransfer(_) => Ok(()),
             Perturbation::SetGeneLoss(p) => check_unit("SetGeneLoss", p),
@@ -111,7 +138,8 @@ impl Control {
     /// its `at_step` must not exceed [`MAX_STEPS`]. `Start` and `Stop` are always valid.
     pub fn validate(&self, geom: &Geometry) -> Result<(), InvalidCommand> {
         match self {
-            Control::Start | Control::Stop => Ok(()),
+            Control::Start | Control::Stop | Control::Pause | Control::Resume => Ok(()),
+            Control::StepRate(r) => check_step_rate(*r),
             Control::Schedule { at_step, change } => {
                 check_max("Schedule.at_step", *at_step, MAX_STEPS)?;
                 change.validate(geom)

@@ -378,6 +378,12 @@ pub struct StepReport {
 pub enum Control {
     Start,
     Stop,
+    /// Hold the run between two steps until `Resume` (the live viewer's pause).
+    Pause,
+    Resume,
+    /// Make at most this many steps per second (0 = as fast as possible), to watch a
+    /// run at human speed.
+    StepRate(f64),
     /// Apply at the start of `at_step` (world side; propagated in percepts).
     Schedule {
         at_step: u64,
@@ -393,6 +399,13 @@ pub enum Perturbation {
     /// Add `count` obstacles of `radius` by the obstacle placement rule; they stay.
     AddObstacles {
         count: u32,
+        radius: i32,
+    },
+    /// Add one obstacle of `radius` centred at (x, y) (the live viewer's click); it is
+    /// not placed where it would cover the hub or another object.
+    AddObstacleAt {
+        x: i32,
+        y: i32,
         radius: i32,
     },
     SetIp(f64),

@@ -85,6 +85,21 @@ pub fn place_obstacle(w: &mut World, rng: &mut ChaCha8Rng, radius: i32) -> Optio
     None
 }
 
+/// An obstacle of `radius` centred at `p` (the live viewer's click): placed when its
+/// block of cells keeps clear of the hub's and no other non-agent object lies in its
+/// neighbourhood, the test the obstacle rule applies to each place it draws.
+pub fn place_obstacle_at(w: &mut World, p: Pos, radius: i32) -> Option<ObjectId> {
+    let g = w.geometry();
+    if !g.contains(p) {
+        return None;
+    }
+    let hub = w.hub();
+    let (hx1, hy1, hx2, hy2) = g.neighbourhood_box(hub.pos, hub.radius);
+    let (x1, y1, x2, y2) = g.neighbourhood_box(p, radius);
+    let meets_hub = x1 < hx2 && hx1 < x2 && y1 < hy2 && hy1 < y2;
+    (!meets_hub && !w.area_has_objects(p, radius)).then(|| w.add_object(ObjectKind::Obstacles, p, radius))
+}
+
 /// Populate a fresh world.
 pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigError> {
     let cfg = w.config().clone();

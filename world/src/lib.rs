@@ -8,6 +8,8 @@
 //! - [`config`]: the world's raw configuration and its validation.
 //! - [`layout`]: task layouts (reference-code and paper variants) and placement rules.
 //! - [`world`]: objects, grid registration, percepts, intent resolution, task %, hooks.
+//! - [`pace`]: pause, step-rate limit and frame-rate bound of a watched run (sans IO).
+//! - [`frame`]: the live viewer's picture of a world.
 //! - [`gather`]: the server's gathering of one step's intents (sans IO).
 //! - [`hub`]: the server's gene hub: per-cell aggregation and forwarding of gene packs
 //!   between agent processes (sans IO).
@@ -15,9 +17,11 @@
 //!   sequencing with deadlines — driven by messages in and a clock value, returning
 //!   messages to publish; the `geese-world` binary only moves bytes between Zenoh and it.
 pub mod config;
+pub mod frame;
 pub mod gather;
 pub mod hub;
 pub mod layout;
+pub mod pace;
 pub mod server;
 pub mod world;
 

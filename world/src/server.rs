@@ -21,6 +21,7 @@
 //! 4. drop intents by the injected loss, resolve the step, publish the report.
 use crate::gather::Gather;
 use crate::hub::{shared_cells, CellMap, GeneHub, Released};
+use crate::pace::Pace;
 use crate::{ConfigError, World, WorldConfig};
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{
@@ -28,7 +29,7 @@ use geese_proto::net::{
     LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
-use geese_proto::{decode, encode, encode_sized, CodecError, Control};
+use geese_proto::{decode, encode, encode_sized, CodecError, Control, StepReport};
 use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 
@@ -56,6 +57,9 @@ pub enum Next {
     /// everyone); `outcome` says whether it completed all its steps.
     Finished { messages: Released, outcome: Result<bool, ServerError> },
 }
+
+/// How often a paused server looks again (a control message wakes it sooner).
+const PAUSED_POLL: Duration = Duration::from_millis(250);
 
 #[derive(Debug, Clone, Copy)]
 enum Phase {
@@ -103,6 +107,12 @@ pub struct Server {
     counters: NetCounters,
     /// Counted rejections of inputs that arrive between steps (reported with the next).
     rejected_between: u32,
+    /// Live viewers present (tokens): frames are built and sent only while one is.
+    viewers: u32,
+    /// The last step's report (the frame shown while paused).
+    last_report: Option<StepReport>,
+    /// Pause, step-rate limit and frame-rate bound (the viewer's controls).
+    pace: Pace,
 }
 
 impl Server {
@@ -148,6 +158,9 @@ impl Server {
             steps_done: 0,
             counters: NetCounters::default(),
             rejected_between: 0,
+            viewers: 0,
+            last_report: None,
+            pace: Pace::new(),
         })
     }
 
@@ -241,6 +254,17 @@ impl Server {
                 keys::tally(&mut self.narrow, agents, alive);
                 Released::default()
             }
+            Parsed::ViewerPresence => {
+                if alive {
+                    self.viewers += 1;
+                    // A viewer that just came sees the current step at once.
+                    self.pace.owe_frame();
+                } else {
+                    self.viewers = self.viewers.saturating_sub(1);
+                }
+                tracing::info!("live viewers: {}", self.viewers);
+                Released::default()
+            }
             Parsed::OrchestratorPresence => {
                 if alive {
                     self.orchestrator = true;
@@ -271,7 +295,12 @@ impl Server {
             self.count_rejected();
             return;
         }
+        if self.pace.on_control(&command) {
+            tracing::info!("pace: {command:?}");
+            return;
+        }
         match command {
+            Control::Pause | Control::Resume | Control::StepRate(_) => {}
             Control::Stop => {
                 self.stop = true;
                 self.stop_requested = true;
@@ -348,6 +377,26 @@ impl Server {
                     if self.world.step() > self.spec.steps {
                         return self.finish(Ok(true));
                     }
+                    // The viewer's pause and step-rate limit hold the next step back;
+                    // a control message wakes the shell before the wait ends.
+                    match self.pace.step_at(now) {
+                        None => {
+                            // Paused: what the control plane scheduled applies now, as it
+                            // would between two steps, and the viewer sees it at once.
+                            if !self.scheduled.is_empty() {
+                                for (at, change) in std::mem::take(&mut self.scheduled) {
+                                    self.world.schedule(at, change);
+                                }
+                                self.pace.owe_frame();
+                            }
+                            if let Some(out) = self.frame_if_due(now) {
+                                return Next::Publish(out);
+                            }
+                            return Next::Wait(now + PAUSED_POLL);
+                        }
+                        Some(at) if at > now => return Next::Wait(at),
+                        Some(_) => self.pace.stepped(now),
+                    }
                     return match self.begin_step(now) {
                         Ok(out) => Next::Publish(out),
                         Err(e) => self.finish(Err(e)),
@@ -372,7 +421,7 @@ impl Server {
                     }
                     self.counters.wait_us =
                         now.saturating_duration_since(started).as_micros().min(u32::MAX as u128) as u32;
-                    return match self.finish_step() {
+                    return match self.finish_step(now) {
                         Ok(out) => Next::Publish(out),
                         Err(e) => self.finish(Err(e)),
                     };
@@ -529,7 +578,7 @@ impl Server {
     }
 
     /// Step 4: resolve the gathered step and report it.
-    fn finish_step(&mut self) -> Result<Released, ServerError> {
+    fn finish_step(&mut self, now: Instant) -> Result<Released, ServerError> {
         let step = self.world.step();
         let got = self.gather.close();
         let c = &mut self.counters;
@@ -563,10 +612,35 @@ impl Server {
                 self.counters.hostile
             );
         }
-        let msg = ReportMsg::Step(NetReport { report, net: self.counters });
+        let msg = ReportMsg::Step(NetReport { report: report.clone(), net: self.counters });
+        let mut out = vec![(keys::report(&self.run), encode(&msg)?)];
         self.steps_done = step;
         self.phase = Phase::Between;
-        Ok(vec![(keys::report(&self.run), encode(&msg)?)])
+        self.last_report = Some(report);
+        out.extend(self.frame_if_due(now).unwrap_or_default());
+        Ok(out)
+    }
+
+    /// The view frame of the last step, when a viewer is present and one is due (the
+    /// frame-rate bound, or a pace change or new viewer owed one). Without a viewer
+    /// nothing is built: a run nobody watches pays one comparison a step.
+    fn frame_if_due(&mut self, now: Instant) -> Option<Released> {
+        if self.viewers == 0 || !self.pace.frame_due(now) {
+            return None;
+        }
+        let rep = self.last_report.clone().unwrap_or_else(|| StepReport {
+            task_pct: self.world.task_pct(),
+            live_agents: self.world.live_agents(),
+            ..StepReport::default()
+        });
+        let f = crate::frame::frame(&self.world, &rep, self.spec.steps, &self.pace);
+        match encode(&f) {
+            Ok(b) => Some(vec![(keys::view_frame(&self.run), b)]),
+            Err(e) => {
+                tracing::warn!("view frame not encoded: {e}");
+                None
+            }
+        }
     }
 
     /// The percept key of a cell (plain key expressions: a key declared by this session

@@ -83,6 +83,8 @@ pub struct World {
     delivered_weight: i32,
     /// Obstacles that perturbations asked for and the placement rule could not place.
     obstacles_unplaced: u64,
+    /// Perturbations applied so far: (step, what), for the live view's chart.
+    events: Vec<(u64, String)>,
 }
 
 impl World {
@@ -102,6 +104,7 @@ impl World {
             total_item_weight: 0,
             delivered_weight: 0,
             obstacles_unplaced: 0,
+            events: Vec::new(),
             cfg,
         };
         let mut rng = ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Layout));
@@ -139,6 +142,10 @@ impl World {
     }
     /// Obstacles that perturbations asked for and the obstacle rule could not place, over
     /// the whole run (each shortfall is also logged).
+    pub fn events(&self) -> &[(u64, String)] {
+        &self.events
+    }
+
     pub fn obstacles_unplaced(&self) -> u64 {
         self.obstacles_unplaced
     }
@@ -541,7 +548,15 @@ impl World {
     /// of any count.
     pub fn perturb(&mut self, change: Perturbation) -> u32 {
         let mut unplaced = 0;
+        self.events.push((self.step, format!("{change:?}")));
         match change {
+            Perturbation::AddObstacleAt { x, y, radius } => {
+                if crate::layout::place_obstacle_at(self, Pos::new(x, y), radius).is_none() {
+                    unplaced = 1;
+                    self.obstacles_unplaced += 1;
+                    warn_unplaced(self.step, 1, radius, 1);
+                }
+            }
             Perturbation::AddObstacles { count, radius } => {
                 let mut rng = std::mem::replace(&mut self.perturb_rng, ChaCha8Rng::seed_from_u64(0));
                 for placed in 0..count {

@@ -82,6 +82,8 @@ enum Event {
     Percepts(ZBytes),
     HostGenes(ZBytes),
     Hostile,
+    /// The live viewer asks for an agent's detail.
+    Detail(zenoh::query::Query),
     Presence {
         alive: bool,
         key: String,
@@ -152,6 +154,14 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
                 _ => Event::Hostile,
             };
             let _ = t.send(ev);
+        })
+        .await
+        .map_err(zerr)?;
+    let t = tx.clone();
+    let _detail = session
+        .declare_queryable(format!("{}/agent/*/detail", keys::run_prefix(&run)))
+        .callback(move |q| {
+            let _ = t.send(Event::Detail(q));
         })
         .await
         .map_err(zerr)?;
@@ -337,6 +347,25 @@ fn absorb(host: &mut Host, ev: Event) {
         Event::Hostile => host.absorb(Input::Hostile, now),
         Event::Presence { alive, key } => host.absorb(Input::Presence { alive, key: &key }, now),
         Event::Stop => host.absorb(Input::Stop, now),
+        Event::Detail(q) => reply_detail(host, q),
+    }
+}
+
+/// Answer the live viewer's question about one of our agents (between two decisions,
+/// from the host's own loop: the learners are not shared with any other thread). A key
+/// that names no agent of ours gets no answer; the process hosting it answers.
+fn reply_detail(host: &Host, q: zenoh::query::Query) {
+    use zenoh::Wait;
+    let key = q.key_expr().as_str();
+    let id = key.split('/').rev().nth(1).and_then(|c| AgentRange::parse(c)).filter(|r| r.len() == 1).map(|r| r.first);
+    let Some(detail) = id.and_then(|id| host.detail(id)) else { return };
+    match geese_proto::encode(&detail) {
+        Ok(bytes) => {
+            if let Err(e) = q.reply(q.key_expr().clone(), bytes).wait() {
+                tracing::debug!("detail reply not sent: {e}");
+            }
+        }
+        Err(e) => tracing::warn!("detail of agent {}: {e}", detail.id),
     }
 }
 

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 /// Multi-process tests run one at a time (each starts up to twenty processes on a
 /// 2-core machine), whatever the test harness's thread count; other tests run beside
 /// them.
-fn serial() -> std::sync::MutexGuard<'static, ()> {
+pub(crate) fn serial() -> std::sync::MutexGuard<'static, ()> {
     static ONE: std::sync::Mutex<()> = std::sync::Mutex::new(());
     // A test that failed while holding it poisons it; the next may still run.
     ONE.lock().unwrap_or_else(|e| e.into_inner())

@@ -4,3 +4,4 @@ mod core;
 mod distributed;
 mod fuzz;
 mod protocol;
+mod view;
