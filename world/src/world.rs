@@ -647,6 +647,26 @@ mod tests {
         Intent { step: w.step(), agent, heading, ops, stats: AgentStats::default() }
     }
 
+    /// The live viewer's click: an obstacle at a point is in the next percepts of its
+    /// cell, logged as an event; one that would cover the hub or another obstacle is
+    /// refused and counted unplaced.
+    #[test]
+    fn an_obstacle_added_at_a_point_is_in_the_next_percepts() {
+        let mut w = world(Task::Foraging, 5);
+        let p = Pos::new(-25, 25);
+        let cell = w.geometry().cell_of(p);
+        let obstacles =
+            |w: &World| w.percept(cell).objects.iter().any(|o| o.kind == ObjectKind::Obstacles && o.pos == p);
+        assert!(!obstacles(&w));
+        assert_eq!(w.perturb(Perturbation::AddObstacleAt { x: -25, y: 25, radius: 10 }), 0);
+        assert!(obstacles(&w));
+        assert_eq!(w.events().len(), 1);
+        assert!(w.events()[0].1.starts_with("AddObstacleAt"));
+        assert_eq!(w.perturb(Perturbation::AddObstacleAt { x: -24, y: 25, radius: 10 }), 1, "on top of the first");
+        assert_eq!(w.perturb(Perturbation::AddObstacleAt { x: 0, y: 0, radius: 10 }), 1, "on the hub");
+        assert_eq!(w.obstacles_unplaced(), 2);
+    }
+
     #[test]
     fn reference_foraging_layout() {
         let w = World::new(WorldConfig::default(), 1).unwrap();
