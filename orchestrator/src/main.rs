@@ -32,7 +32,8 @@ struct Cli {
 enum Cmd {
     /// Run one trial (defaults: the paper's foraging setting).
     Run(RunArgs),
-    /// Inspect grammars: map a genome, print the behaviour tree, list built-ins.
+    /// Inspect grammars: map a genome, print the behaviour tree, list built-ins, the
+    /// Table 2 metrics.
     Grammar {
         #[command(subcommand)]
         cmd: GrammarCmd,
@@ -227,6 +228,18 @@ enum GrammarCmd {
     Tree(MapArgs),
     /// List the built-in grammars.
     List,
+    /// Print a grammar's modularity metrics (the paper's Table 2, REFERENCE §8.3).
+    Metrics(MetricsArgs),
+}
+
+#[derive(Args)]
+struct MetricsArgs {
+    /// Built-in grammar name or .bnf file.
+    #[arg(long)]
+    grammar: String,
+    /// One JSON object instead of the table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -293,6 +306,23 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
         GrammarCmd::List => {
             for n in geese_agent::grammars::names() {
                 println!("{n}");
+            }
+        }
+        GrammarCmd::Metrics(a) => {
+            let (g, text) = load_grammar(&a.grammar)?;
+            let m = ge::GrammarMetrics::compute(&g, &text);
+            if a.json {
+                /// The grammar's name first, then the metrics in Table 2's order.
+                #[derive(serde::Serialize)]
+                struct Named<'a> {
+                    grammar: &'a str,
+                    #[serde(flatten)]
+                    metrics: &'a ge::GrammarMetrics,
+                }
+                println!("{}", serde_json::to_string(&Named { grammar: &a.grammar, metrics: &m })?);
+            } else {
+                println!("grammar {}", a.grammar);
+                print!("{m}");
             }
         }
         GrammarCmd::Map(a) => {

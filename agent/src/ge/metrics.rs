@@ -103,6 +103,22 @@ impl GrammarMetrics {
     }
 }
 
+/// One metric a line, label then value, decimals to two places (as Table 2 prints them).
+impl std::fmt::Display for GrammarMetrics {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let timp = self.tree_impurity.map_or("undefined (fewer than 3 rules)".into(), |t| format!("{t:.2}"));
+        writeln!(f, "terminals (T)             {}", self.terminals)?;
+        writeln!(f, "non-terminals (N)         {}", self.non_terminals)?;
+        writeln!(f, "McCabe (MCC)              {}", self.mccabe)?;
+        writeln!(f, "average RHS size          {:.2}", self.avg_rhs)?;
+        writeln!(f, "Halstead effort (HAL)     {:.2}", self.halstead)?;
+        writeln!(f, "tree impurity (TIMP) %    {timp}")?;
+        writeln!(f, "CLEV %                    {:.2}", self.clev)?;
+        writeln!(f, "NSLEV                     {}", self.nslev)?;
+        writeln!(f, "DEP                       {}", self.dep)
+    }
+}
+
 /// Halstead effort with η₁ = 1 operator, η₂ = T + N operands and n₁ = n₂ = `uses`
 /// (one per alternative of every line): η₁·n₂·(n₁ + n₂)·log₂(η₁ + η₂) / (2η₂).
 fn halstead(terminals: usize, non_terminals: usize, uses: usize) -> f64 {
