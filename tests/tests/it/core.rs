@@ -154,6 +154,49 @@ fn cli_grammar_metrics_prints_table_2() {
     assert!(!ok && err.contains("bad.bnf") && err.contains("<missing>"), "{err}");
 }
 
+/// Issue 19: `geese grammar tree` draws a genome or a population member as text, DOT or
+/// SVG, into a file with --output; a bad member index or format is named.
+#[test]
+fn cli_grammar_tree_draws_pictures_of_population_members() {
+    let pops = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../populations");
+    let multi = pops.join("multi-geese-foraging.json");
+    let multi = multi.to_str().expect("utf8");
+    let dir = tempfile::tempdir().expect("tmp");
+    let svg = dir.path().join("member.svg");
+    let args = ["grammar", "tree", "--population", multi, "--member", "0", "--format", "svg", "--output"];
+    let (ok, out, err) = geese(&[&args[..], &[svg.to_str().expect("utf8")]].concat());
+    assert!(ok && out.is_empty(), "{err}");
+    let svg = std::fs::read_to_string(&svg).expect("written");
+    assert!(svg.starts_with("<svg ") && svg.trim_end().ends_with("</svg>"));
+    // The controllers are in place: the GeneDict's gene trees hold their actions.
+    assert!(svg.contains("ExploreNormal (Act)") && svg.contains("CompositeDrop[Food] (Act)"), "{svg}");
+    let (ok, text, err) = geese(&["grammar", "tree", "--population", multi, "--member", "0"]);
+    assert!(ok, "{err}");
+    assert_eq!(svg.matches("<g>").count(), text.lines().count(), "one group per node");
+
+    let (ok, dot, err) = geese(&[
+        "grammar",
+        "tree",
+        "--grammar",
+        "betr-foraging-avoid",
+        "--genome",
+        "1027,25,1038,773,1037,793,953,372,1146,1579,473,816,219,562,786,606,897,1539,1964,164,1807,896",
+        "--format",
+        "dot",
+    ]);
+    assert!(ok, "{err}");
+    assert!(dot.starts_with("digraph bt {") && dot.contains(r#"n8 [label="MoveAway[Hub] (Act)""#), "{dot}");
+
+    let five = pops.join("foraging-five-behaviours.json");
+    let five = five.to_str().expect("utf8");
+    let (ok, _, err) = geese(&["grammar", "tree", "--population", five, "--member", "5"]);
+    assert!(!ok && err.contains("has no member 5: it has 5") && !err.contains("panicked"), "{err}");
+    let (ok, _, err) = geese(&["grammar", "tree", "--population", five, "--member", "0", "--format", "png"]);
+    assert!(!ok && err.contains("'png'") && err.contains("text, dot or svg"), "{err}");
+    let (ok, _, err) = geese(&["grammar", "tree", "--population", five, "--member", "first"]);
+    assert!(!ok && err.contains("--member"), "{err}");
+}
+
 #[test]
 fn cli_rejects_bad_input_with_a_named_error() {
     let (ok, _, err) = geese(&["grammar", "map", "--grammar", "betr-foraging-avoid", "--genome", "1,2,x"]);
