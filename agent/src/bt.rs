@@ -4,6 +4,8 @@
 //! `i..end[i]` and "reset the whole subtree" is a slice fill. Statuses persist between
 //! ticks exactly as in py_trees, including the stale statuses a Selector leaves behind
 //! when its first child succeeds — fitness reads them (§6.5).
+//!
+//! `render` draws a tree as text, a Graphviz digraph or an SVG picture ([`TreeFormat`]).
 use crate::ge::{CompositeKind, PNode};
 use crate::leaves::{Leaf, LeafError, LeafSpec};
 use crate::view::View;
@@ -11,6 +13,9 @@ use geese_proto::BehaviourClass;
 use rand::Rng;
 use std::fmt::Write;
 use std::sync::Arc;
+
+mod render;
+pub use render::TreeFormat;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Status {
@@ -57,6 +62,20 @@ pub enum Kind {
     Parallel,
     Inverter,
     Leaf(Leaf, Tag),
+}
+
+impl Kind {
+    /// How the text rendering and the pictures name a node: the composite kind, or the
+    /// leaf's name and the grammar tag it came from.
+    fn label(&self) -> String {
+        match self {
+            Kind::Sequence => "Sequence".into(),
+            Kind::Selector => "Selector".into(),
+            Kind::Parallel => "Parallel".into(),
+            Kind::Inverter => "Inverter".into(),
+            Kind::Leaf(l, t) => format!("{} ({})", l.name(), t.label()),
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -338,14 +357,7 @@ impl Bt {
 
     fn render_node(&self, i: u32, depth: usize, out: &mut String) {
         let n = &self.nodes[i as usize];
-        let pad = "  ".repeat(depth);
-        let _ = match &n.kind {
-            Kind::Sequence => writeln!(out, "{pad}Sequence"),
-            Kind::Selector => writeln!(out, "{pad}Selector"),
-            Kind::Parallel => writeln!(out, "{pad}Parallel"),
-            Kind::Inverter => writeln!(out, "{pad}Inverter"),
-            Kind::Leaf(l, t) => writeln!(out, "{pad}{} ({})", l.name(), t.label()),
-        };
+        let _ = writeln!(out, "{}{}", "  ".repeat(depth), n.kind.label());
         for &c in &n.children {
             self.render_node(c, depth + 1, out);
         }

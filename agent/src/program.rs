@@ -287,6 +287,8 @@ pub enum ProgramError {
     Member { index: usize, reason: String },
     #[error("population has no members")]
     NoMembers,
+    #[error("population has no member {index}: it has {members} (numbered from 0, best first)")]
+    NoSuchMember { index: usize, members: usize },
     #[error("sample {sample} of {members} members selects none (it must select at least one)")]
     EmptySample { sample: f64, members: usize },
     #[error("sample {0} is not in (0, 1]")]
@@ -517,6 +519,18 @@ impl Population {
         v
     }
 
+    /// The behaviour tree of member `k` of the best-first order ([`Population::sorted_members`])
+    /// as a run builds it: a Multi-GEESE member's controller slots hold the trees of its
+    /// GeneDict's genes ([`build_tree`]), so the picture is what the agent ticks.
+    pub fn member_tree(&self, k: usize) -> Result<Bt, ProgramError> {
+        let ranked = self.sorted_members();
+        let m = ranked.get(k).ok_or(ProgramError::NoSuchMember { index: k, members: ranked.len() })?;
+        if let Some(d) = &m.gene_dict {
+            check_gene_dict(d).map_err(|e| ProgramError::Member { index: k, reason: e.to_string() })?;
+        }
+        build_tree(&m.phenotype, m.gene_dict.as_ref()).map_err(|reason| ProgramError::Member { index: k, reason })
+    }
+
     /// The members a fixed run of `sample` (a fraction in (0, 1]) uses with `strategy`:
     /// the best ⌊sample · n⌋ of the n members; for the Parallel strategy duplicate
     /// phenotypes collapse first and the best ⌊sample · n⌋ distinct ones are kept (the
@@ -692,6 +706,49 @@ mod tests {
         assert!(empty.render().contains("AbsentAction"), "{}", empty.render());
         dict.insert("Fly".into(), StoredGene { phenotype: PPA.into(), genome: Arc::from([]), fitness: 0.0 });
         assert_eq!(check_gene_dict(&dict), Err(ProgramError::BadKey { key: "Fly".into() }));
+    }
+
+    /// Issue 19: any member of the shipped populations can be drawn; a Multi-GEESE
+    /// member's controllers appear in place.
+    #[test]
+    fn members_of_the_shipped_populations_build_as_the_run_builds_them() {
+        use crate::bt::TreeFormat;
+        let five = Population::from_json(include_str!("../../populations/foraging-five-behaviours.json")).unwrap();
+        for k in 0..5 {
+            let bt = five.member_tree(k).unwrap();
+            assert!(bt.draw(TreeFormat::Dot).starts_with("digraph bt {"));
+            assert!(bt.render().contains("(Act)"));
+        }
+        assert_eq!(five.member_tree(5).unwrap_err(), ProgramError::NoSuchMember { index: 5, members: 5 });
+        assert_eq!(
+            five.member_tree(5).unwrap_err().to_string(),
+            "population has no member 5: it has 5 (numbered from 0, best first)"
+        );
+
+        let multi = Population::from_json(include_str!("../../populations/multi-geese-foraging.json")).unwrap();
+        let best = multi.sorted_members()[0];
+        let dict = best.gene_dict.as_ref().unwrap();
+        let bt = multi.member_tree(0).unwrap();
+        let bare = ge::parse_phenotype(&best.phenotype).unwrap();
+        assert!(bt.len() > bare.size(), "the GeneDict's trees replace the controller slots");
+        let text = bt.render();
+        assert!(!text.contains("AbsentAction"), "all five slots are in the GeneDict: {text}");
+        // Every controller slot of the combine phenotype became its gene's tree.
+        let slots: Vec<&str> =
+            bare.leaves().into_iter().filter(|(_, tag)| *tag == "Act").map(|(l, _)| l.trim()).collect();
+        assert!(!slots.is_empty());
+        for slot in slots {
+            let gene = build_tree(&dict[slot].phenotype, None).unwrap().render();
+            let action = gene.lines().find(|l| l.ends_with("(Act)")).unwrap().trim();
+            assert!(text.contains(action), "{slot}: {action} not in the combined tree");
+        }
+        let svg = bt.draw(TreeFormat::Svg);
+        assert_eq!(svg.matches("<g>").count(), bt.len());
+        // A member whose phenotype needs its GeneDict, without it, is named.
+        let mut broken = multi.clone();
+        broken.members.iter_mut().for_each(|m| m.gene_dict = None);
+        let e = broken.member_tree(0).unwrap_err().to_string();
+        assert!(e.starts_with("population member 0: "), "{e}");
     }
 
     #[test]

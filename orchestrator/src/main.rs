@@ -4,12 +4,12 @@
 #![allow(rustdoc::invalid_html_tags)]
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use geese_agent::bt::Bt;
+use geese_agent::bt::{Bt, TreeFormat};
 use geese_agent::ge::{self, GeParams};
 use geese_agent::FitnessVariant;
 use geese_agent::Program;
 use geese_orchestrator::campaign::{run_stages, TrialError, TrialRunner};
-use geese_orchestrator::config::{load_grammar, FollowUp, RunConfig};
+use geese_orchestrator::config::{load_grammar, read_population, FollowUp, RunConfig};
 use geese_orchestrator::output::{write_manifest, StepCsv};
 use geese_orchestrator::trial::Ran;
 use geese_orchestrator::{bench, Trial};
@@ -32,7 +32,8 @@ struct Cli {
 enum Cmd {
     /// Run one trial (defaults: the paper's foraging setting).
     Run(RunArgs),
-    /// Inspect grammars: map a genome, print the behaviour tree, list built-ins.
+    /// Inspect grammars: map a genome, print the behaviour tree, list built-ins, the
+    /// Table 2 metrics.
     Grammar {
         #[command(subcommand)]
         cmd: GrammarCmd,
@@ -236,10 +237,23 @@ impl RunArgs {
 enum GrammarCmd {
     /// Map a genome; prints {"valid","used_codons","depth","phenotype","diversity"}.
     Map(MapArgs),
-    /// Print the behaviour tree a genome builds.
-    Tree(MapArgs),
+    /// Print the behaviour tree a genome or a population member builds, as text, a
+    /// Graphviz digraph or an SVG picture.
+    Tree(TreeArgs),
     /// List the built-in grammars.
     List,
+    /// Print a grammar's modularity metrics (the paper's Table 2, REFERENCE §8.3).
+    Metrics(MetricsArgs),
+}
+
+#[derive(Args)]
+struct MetricsArgs {
+    /// Built-in grammar name or .bnf file.
+    #[arg(long)]
+    grammar: String,
+    /// One JSON object instead of the table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -250,12 +264,46 @@ struct MapArgs {
     /// Comma-separated codons, e.g. 1213,1114,267
     #[arg(long)]
     genome: String,
+    #[command(flatten)]
+    limits: MapLimitArgs,
+}
+
+/// The GE parameters a genome is mapped with.
+#[derive(Args)]
+struct MapLimitArgs {
     #[arg(long, default_value_t = 2000)]
     codon_size: u32,
     #[arg(long, default_value_t = 10)]
     max_depth: usize,
     #[arg(long, default_value_t = 0)]
     max_wraps: usize,
+}
+
+/// A tree from a genome (`--grammar` and `--genome`) or from a population file
+/// (`--population` and `--member`).
+#[derive(Args)]
+#[command(group(clap::ArgGroup::new("source").required(true).args(["grammar", "population"])))]
+struct TreeArgs {
+    /// Built-in grammar name or .bnf file (with --genome).
+    #[arg(long, requires = "genome")]
+    grammar: Option<String>,
+    /// Comma-separated codons, e.g. 1213,1114,267 (with --grammar).
+    #[arg(long, requires = "grammar")]
+    genome: Option<String>,
+    #[command(flatten)]
+    limits: MapLimitArgs,
+    /// A population file (population.json); draw its member --member.
+    #[arg(long, requires = "member")]
+    population: Option<PathBuf>,
+    /// 0-based index of the member, best first (as a fixed run ranks them).
+    #[arg(long, value_name = "K", requires = "population")]
+    member: Option<usize>,
+    /// text (indented listing), dot (Graphviz) or svg (a picture).
+    #[arg(long, default_value = "text")]
+    format: TreeFormat,
+    /// Write to this file instead of standard output.
+    #[arg(long)]
+    output: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -290,7 +338,7 @@ fn parse_genome(s: &str) -> Result<Vec<u32>> {
     Ok(g)
 }
 
-fn ge_params(a: &MapArgs) -> Result<GeParams> {
+fn ge_params(a: &MapLimitArgs) -> Result<GeParams> {
     let p = GeParams {
         codon_size: a.codon_size,
         max_tree_depth: a.max_depth,
@@ -308,10 +356,27 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
                 println!("{n}");
             }
         }
+        GrammarCmd::Metrics(a) => {
+            let (g, text) = load_grammar(&a.grammar)?;
+            let m = ge::GrammarMetrics::compute(&g, &text);
+            if a.json {
+                /// The grammar's name first, then the metrics in Table 2's order.
+                #[derive(serde::Serialize)]
+                struct Named<'a> {
+                    grammar: &'a str,
+                    #[serde(flatten)]
+                    metrics: &'a ge::GrammarMetrics,
+                }
+                println!("{}", serde_json::to_string(&Named { grammar: &a.grammar, metrics: &m })?);
+            } else {
+                println!("grammar {}", a.grammar);
+                print!("{m}");
+            }
+        }
         GrammarCmd::Map(a) => {
             let (g, _) = load_grammar(&a.grammar)?;
             let genome = parse_genome(&a.genome)?;
-            let p = ge_params(&a)?;
+            let p = ge_params(&a.limits)?;
             let ind = ge::evaluate(&g, genome, &p);
             let v = match &ind.phenotype {
                 Some(ph) => serde_json::json!({
@@ -326,19 +391,37 @@ fn grammar_cmd(cmd: GrammarCmd) -> Result<()> {
             println!("{v}");
         }
         GrammarCmd::Tree(a) => {
-            let (g, _) = load_grammar(&a.grammar)?;
-            let genome = parse_genome(&a.genome)?;
-            let p = ge_params(&a)?;
-            let ind = ge::evaluate(&g, genome, &p);
-            let Some(ph) = &ind.phenotype else {
-                bail!("the genome is invalid under this grammar (its derivation does not finish)");
-            };
-            let root = ge::parse_phenotype(ph).map_err(|e| anyhow::anyhow!("phenotype: {e}"))?;
-            let bt = Bt::from_pnode(&root).map_err(|e| anyhow::anyhow!("behaviour tree: {e}"))?;
-            print!("{}", bt.render());
+            let picture = tree_of(&a)?.draw(a.format);
+            match &a.output {
+                Some(path) => {
+                    std::fs::write(path, picture).with_context(|| format!("cannot write {}", path.display()))?
+                }
+                None => print!("{picture}"),
+            }
         }
     }
     Ok(())
+}
+
+/// The tree `geese grammar tree` draws: a genome's under its grammar, or a population
+/// member's as a run builds it.
+fn tree_of(a: &TreeArgs) -> Result<Bt> {
+    if let (Some(path), Some(k)) = (&a.population, a.member) {
+        let pop = read_population(path)?;
+        return pop.member_tree(k).with_context(|| format!("population {}, --member {k}", path.display()));
+    }
+    let (Some(grammar), Some(genome)) = (&a.grammar, &a.genome) else {
+        bail!("give --grammar and --genome, or --population and --member");
+    };
+    let (g, _) = load_grammar(grammar)?;
+    let genome = parse_genome(genome)?;
+    let p = ge_params(&a.limits)?;
+    let ind = ge::evaluate(&g, genome, &p);
+    let Some(ph) = &ind.phenotype else {
+        bail!("the genome is invalid under this grammar (its derivation does not finish)");
+    };
+    let root = ge::parse_phenotype(ph).map_err(|e| anyhow::anyhow!("phenotype: {e}"))?;
+    Bt::from_pnode(&root).map_err(|e| anyhow::anyhow!("behaviour tree: {e}"))
 }
 
 fn run_cmd(a: RunArgs) -> Result<()> {

@@ -11,6 +11,7 @@
 //! - [`phenotype`]: bracket phenotype string → composite tree with the §4.3 quirk.
 //! - [`mod@diversity`]: the `bt_diversity` fitness D of §5.5.
 //! - [`operators`]: parameters, individuals and one genetic step (§5.1, §5.6).
+//! - [`metrics`]: the grammar modularity metrics of the paper's Table 2 (§8.3).
 //! - [`micro`]: micro-benchmarks of one genetic step and one mapping (`geese bench --micro`).
 //! - `ceiling`: the highest D a grammar's valid individuals can score.
 //! - `crossover`: the genetic step's crossover pairs, drawn from the accepted ones.
@@ -23,6 +24,7 @@ pub mod diversity;
 pub mod grammar;
 pub mod init;
 pub mod mapper;
+pub mod metrics;
 pub mod micro;
 pub mod operators;
 pub mod phenotype;
@@ -32,6 +34,7 @@ pub use diversity::{diversity, python_round4, BEHAVIOURS};
 pub use grammar::{Alternative, Grammar, GrammarError, Rule, Symbol};
 pub use init::{uniform_tree, Derivation};
 pub use mapper::{map_genome, MapLimits, MapStats, Mapper, Mapping};
+pub use metrics::GrammarMetrics;
 pub use operators::{
     evaluate, evaluate_stats_with, fitness_cmp, genetic_step, genetic_step_in, genetic_step_on,
     genetic_step_with_stats, random_individual, sort_by_fitness_desc, Candidate, GeError, GeParams, Individual, Member,

@@ -57,7 +57,10 @@ fn bad_parameters_are_named() {
 }
 
 fn geese(args: &[&str]) -> (bool, String, String) {
-    let bin = geese_tests::bin_path("geese-orchestrator", "geese");
+    // Built (or found up to date) once per test process: each `cargo build` check costs
+    // about 0.4 s, and a test may run the binary several times.
+    static BIN: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    let bin = BIN.get_or_init(|| geese_tests::bin_path("geese-orchestrator", "geese"));
     let out = Command::new(bin).args(args).output().expect("run geese");
     (out.status.success(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
 }
@@ -121,6 +124,77 @@ fn cli_grammar_tree_prints_the_worked_tree() {
     assert!(ok, "{err}");
     let expected = "Selector\n  Selector\n    Sequence\n      IsCarrying[Food] (PostCnd)\n    Sequence\n      Sequence\n        Inverter\n          IsVisitedBefore[Sites] (PreCnd)\n        MoveAway[Hub] (Act)\n";
     assert_eq!(out, expected);
+}
+
+/// Issue 19: `geese grammar metrics` prints Table 2's values (REFERENCE §8.3) as a table
+/// and as JSON; a missing file or a grammar that does not parse is named.
+#[test]
+fn cli_grammar_metrics_prints_table_2() {
+    let (ok, out, err) = geese(&["grammar", "metrics", "--grammar", "betr-table2-reference"]);
+    assert!(ok, "{err}");
+    for line in ["terminals (T)             30", "Halstead effort (HAL)     283.62", "tree impurity (TIMP) %    7.60"] {
+        assert!(out.contains(line), "{line:?} not in\n{out}");
+    }
+    let (ok, out, err) = geese(&["grammar", "metrics", "--grammar", "geese-bt-foraging", "--json"]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(out.trim()).expect("one JSON object");
+    assert_eq!(v["grammar"], "geese-bt-foraging");
+    let ints = ["T", "N", "MCC", "NSLEV", "DEP"].map(|k| v[k].as_u64().unwrap_or(u64::MAX));
+    assert_eq!(ints, [24, 11, 27, 4, 6]);
+    assert_eq!((v["RHS"].as_f64(), v["HAL"].as_f64()), (Some(4.09), Some(132.94)));
+    let two = |k: &str| format!("{:.2}", v[k].as_f64().unwrap_or(f64::NAN));
+    assert_eq!((two("TIMP"), two("CLEV")), ("15.56".to_string(), "36.36".to_string()));
+
+    let (ok, _, err) = geese(&["grammar", "metrics", "--grammar", "/nonexistent/g.bnf"]);
+    assert!(!ok && err.contains("/nonexistent/g.bnf") && !err.contains("panicked"), "{err}");
+    let dir = tempfile::tempdir().expect("tmp");
+    let bad = dir.path().join("bad.bnf");
+    std::fs::write(&bad, "<s> ::= <missing>\n").expect("write");
+    let (ok, _, err) = geese(&["grammar", "metrics", "--grammar", bad.to_str().expect("utf8")]);
+    assert!(!ok && err.contains("bad.bnf") && err.contains("<missing>"), "{err}");
+}
+
+/// Issue 19: `geese grammar tree` draws a genome or a population member as text, DOT or
+/// SVG, into a file with --output; a bad member index or format is named.
+#[test]
+fn cli_grammar_tree_draws_pictures_of_population_members() {
+    let pops = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../populations");
+    let multi = pops.join("multi-geese-foraging.json");
+    let multi = multi.to_str().expect("utf8");
+    let dir = tempfile::tempdir().expect("tmp");
+    let svg = dir.path().join("member.svg");
+    let args = ["grammar", "tree", "--population", multi, "--member", "0", "--format", "svg", "--output"];
+    let (ok, out, err) = geese(&[&args[..], &[svg.to_str().expect("utf8")]].concat());
+    assert!(ok && out.is_empty(), "{err}");
+    let svg = std::fs::read_to_string(&svg).expect("written");
+    assert!(svg.starts_with("<svg ") && svg.trim_end().ends_with("</svg>"));
+    // The controllers are in place: the GeneDict's gene trees hold their actions.
+    assert!(svg.contains("ExploreNormal (Act)") && svg.contains("CompositeDrop[Food] (Act)"), "{svg}");
+    let (ok, text, err) = geese(&["grammar", "tree", "--population", multi, "--member", "0"]);
+    assert!(ok, "{err}");
+    assert_eq!(svg.matches("<g>").count(), text.lines().count(), "one group per node");
+
+    let (ok, dot, err) = geese(&[
+        "grammar",
+        "tree",
+        "--grammar",
+        "betr-foraging-avoid",
+        "--genome",
+        "1027,25,1038,773,1037,793,953,372,1146,1579,473,816,219,562,786,606,897,1539,1964,164,1807,896",
+        "--format",
+        "dot",
+    ]);
+    assert!(ok, "{err}");
+    assert!(dot.starts_with("digraph bt {") && dot.contains(r#"n8 [label="MoveAway[Hub] (Act)""#), "{dot}");
+
+    let five = pops.join("foraging-five-behaviours.json");
+    let five = five.to_str().expect("utf8");
+    let (ok, _, err) = geese(&["grammar", "tree", "--population", five, "--member", "5"]);
+    assert!(!ok && err.contains("has no member 5: it has 5") && !err.contains("panicked"), "{err}");
+    let (ok, _, err) = geese(&["grammar", "tree", "--population", five, "--member", "0", "--format", "png"]);
+    assert!(!ok && err.contains("'png'") && err.contains("text, dot or svg"), "{err}");
+    let (ok, _, err) = geese(&["grammar", "tree", "--population", five, "--member", "first"]);
+    assert!(!ok && err.contains("--member"), "{err}");
 }
 
 #[test]
