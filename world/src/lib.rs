@@ -8,6 +8,8 @@
 //! - [`config`]: the world's raw configuration and its validation.
 //! - [`layout`]: task layouts (reference-code and paper variants) and placement rules.
 //! - [`world`]: objects, grid registration, percepts, intent resolution, task %, hooks.
+//! - [`locality`]: the locality map (Fig. 5): agent-steps per location and behaviour
+//!   class over a window of steps, counted by the world.
 //! - [`gather`]: the server's gathering of one step's intents (sans IO).
 //! - [`hub`]: the server's gene hub: per-cell aggregation and forwarding of gene packs
 //!   between agent processes (sans IO).
@@ -18,6 +20,7 @@ pub mod config;
 pub mod gather;
 pub mod hub;
 pub mod layout;
+pub mod locality;
 pub mod server;
 pub mod world;
 

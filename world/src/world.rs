@@ -1,6 +1,7 @@
 //! Authoritative world state: objects, agent bodies, grid registration, percepts,
 //! intent resolution, task percentage and scheduled perturbations.
 use crate::config::{ConfigError, Task, WorldConfig};
+use crate::locality::{Locality, Window};
 use geese_proto::rules::{self, DropOutcome};
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
@@ -83,6 +84,8 @@ pub struct World {
     delivered_weight: i32,
     /// Obstacles that perturbations asked for and the placement rule could not place.
     obstacles_unplaced: u64,
+    /// The locality map being counted, if the run asked for one.
+    locality: Option<Locality>,
 }
 
 impl World {
@@ -102,6 +105,7 @@ impl World {
             total_item_weight: 0,
             delivered_weight: 0,
             obstacles_unplaced: 0,
+            locality: None,
             cfg,
         };
         let mut rng = ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Layout));
@@ -141,6 +145,18 @@ impl World {
     /// the whole run (each shortfall is also logged).
     pub fn obstacles_unplaced(&self) -> u64 {
         self.obstacles_unplaced
+    }
+
+    /// Count the locality map of `window` from now on (steps already resolved are not
+    /// counted again). Without this call the world counts nothing and pays one branch a
+    /// step.
+    pub fn record_locality(&mut self, window: Window) {
+        self.locality = Some(Locality::new(window));
+    }
+
+    /// The locality map counted so far, if [`World::record_locality`] asked for one.
+    pub fn locality(&self) -> Option<&Locality> {
+        self.locality.as_ref()
     }
 
     // ---------------------------------------------------------------- construction
@@ -357,6 +373,10 @@ impl World {
         }
         rep.digest = digest.finish();
         rep.task_pct = self.task_pct();
+        // Where everyone stands after acting, before the hooks (crate::locality docs).
+        if let Some(l) = self.locality.as_mut() {
+            l.record(self.step, &self.bodies);
+        }
         self.run_hooks();
         rep.live_agents = self.live_agents();
         self.step += 1;
@@ -839,6 +859,28 @@ mod tests {
             }
             let pos = |w: &World| w.objects().map(|o| o.info.pos).collect::<Vec<_>>();
             assert_eq!(pos(&a), pos(&b));
+        }
+    }
+
+    #[test]
+    fn the_locality_map_counts_live_agents_after_each_step_before_its_hooks() {
+        let mut w = world(Task::Foraging, 4);
+        assert!(w.locality().is_none());
+        w.record_locality("2:3".parse().expect("window"));
+        // Half the agents die right after step 2: they count at step 2, not at 3.
+        w.schedule(2, Perturbation::KillFraction(0.5));
+        let mut mover = intent(&w, 0, 0.0, vec![Op::Move { to: Pos::new(2, 0), heading: 0.0 }]);
+        mover.stats.class = BehaviourClass::MoveTowards;
+        w.resolve(&[Some(mover), None, None, None]);
+        for _ in 2..=4 {
+            w.resolve(&[None, None, None, None]);
+        }
+        let l = w.locality().expect("recording");
+        assert_eq!((l.steps(), l.agent_steps()), (2, 4 + 2));
+        // Agent 0 stands where its step-1 intent took it, under the class it reported
+        // (missing intents since); the others never reported a class.
+        for c in l.counts() {
+            assert!(matches!((c.x, c.y, c.class), (2, 0, 4) | (0, 0, 0)), "{c:?}");
         }
     }
 
