@@ -236,6 +236,11 @@ impl World {
         self.geom.any_neighbourhood_cell(p, r, |c| !self.cells[c as usize].objects.is_empty())
     }
 
+    /// Is an impassable object registered in any cell of N(p, r)?
+    pub(crate) fn area_blocked(&self, p: Pos, r: i32) -> bool {
+        self.geom.any_neighbourhood_cell(p, r, |c| self.cell_blocked(c))
+    }
+
     fn cell_blocked(&self, cell: CellIdx) -> bool {
         self.objects_in(cell).any(|o| !o.kind.passable())
     }
@@ -679,6 +684,33 @@ mod tests {
         let n = World::new(WorldConfig { task: Task::Nest, ..Default::default() }, 3).unwrap();
         assert_eq!(n.objects().filter(|o| o.info.kind == ObjectKind::Boundary).count(), 5);
         assert_eq!(n.objects_in(55).filter(|o| o.kind == ObjectKind::Debris).count(), 100);
+    }
+
+    #[test]
+    fn the_locality_world_has_its_four_fixed_obstacles() {
+        // REFERENCE §1.4: hub (0,0), site (−30,30), obstacles at (−30,−30), (30,−30),
+        // (30,30), (−15,0), agents at the hub.
+        let at = [Pos::new(-30, -30), Pos::new(30, -30), Pos::new(30, 30), Pos::new(-15, 0)];
+        let cfg = WorldConfig {
+            site: Pos::new(-30, 30),
+            fixed_obstacles: at.to_vec(),
+            start: Some(Start::Hub),
+            ..Default::default()
+        };
+        let w = World::new(cfg.clone(), 1).unwrap();
+        let obs: Vec<Pos> = w.objects().filter(|o| o.info.kind == ObjectKind::Obstacles).map(|o| o.info.pos).collect();
+        assert_eq!(obs, at);
+        assert!(w.objects().any(|o| o.info.kind == ObjectKind::Sites && o.info.pos == Pos::new(-30, 30)));
+        assert!(w.bodies().iter().all(|b| b.pos == Pos::new(0, 0)));
+        // An obstacle on the hub or under the site, or two in one cell, is refused by name.
+        for (bad, field) in [
+            (vec![Pos::new(3, 3)], "fixed_obstacles"),
+            (vec![Pos::new(-25, 35)], "site"),
+            (vec![Pos::new(30, -30), Pos::new(31, -29)], "fixed_obstacles"),
+        ] {
+            let e = World::new(WorldConfig { fixed_obstacles: bad, ..cfg.clone() }, 1).err().expect("refused");
+            assert!(e.to_string().starts_with(&format!("world.{field}: ")), "{e}");
+        }
     }
 
     #[test]
