@@ -185,6 +185,13 @@ impl Campaign {
         if file.step_stride == 0 {
             return Err(invalid("step_stride", "must be at least 1"));
         }
+        if let Some(w) = &file.base.locality {
+            // The results database has no place for per-trial maps (NOTES.md).
+            return Err(invalid(
+                "base.locality",
+                format!("{w:?}: a locality map is drawn from one run: use geese run --locality, not a campaign"),
+            ));
+        }
         let conditions = expand_grid(&file.grid)?;
         let trials = conditions.len() as u64 * file.tasks.len() as u64 * u64::from(file.seeds);
         if trials > MAX_TRIALS {

@@ -8,6 +8,7 @@ use geese_agent::program::{Algorithm, Phase, Population, Program, Strategy};
 use geese_agent::{grammars, LearnerConfig};
 use geese_proto::limits::{check_max, MAX_SCHEDULED, MAX_STEPS};
 use geese_proto::{Perturbation, Regime};
+use geese_world::locality::Window;
 use geese_world::{Task, WorldConfig};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -57,6 +58,10 @@ pub struct RunConfig {
     pub world: WorldConfig,
     pub learner: LearnerConfig,
     pub perturbations: Vec<Scheduled>,
+    /// Count the locality map (Fig. 5) over steps `FROM:TO`, both included, step 1
+    /// being the first ([`geese_world::locality`]); written to `locality.csv`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub locality: Option<String>,
 }
 
 impl Default for RunConfig {
@@ -78,6 +83,7 @@ impl Default for RunConfig {
             world: WorldConfig::default(),
             learner: LearnerConfig::default(),
             perturbations: Vec::new(),
+            locality: None,
         }
     }
 }
@@ -125,6 +131,8 @@ pub struct RunSpec {
     pub follow_up: FollowUp,
     /// Which stage this is: `collect`, `combine`, `learn` or `fixed`.
     pub stage: &'static str,
+    /// The steps whose locality map the stage counts (`locality`).
+    pub locality: Option<Window>,
 }
 
 impl RunConfig {
@@ -145,6 +153,20 @@ impl RunConfig {
             (_, p) => p,
         };
         self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, task_name(self.world.task)))
+    }
+
+    /// The locality window, checked: `FROM:TO` with 1 ≤ FROM ≤ TO ≤ `steps`.
+    pub fn locality_window(&self) -> Result<Option<Window>, ConfigError> {
+        let Some(text) = &self.locality else { return Ok(None) };
+        let w: Window =
+            text.parse().map_err(|e: geese_world::locality::LocalityError| invalid("locality", e.to_string()))?;
+        if w.to > self.steps {
+            return Err(invalid(
+                "locality",
+                format!("{text:?} ends after the run's last step, {} (steps = {})", self.steps, self.steps),
+            ));
+        }
+        Ok(Some(w))
     }
 
     /// The initial regime (IP, lateral transfer, loss).
@@ -173,6 +195,7 @@ impl RunConfig {
         if !(0.0..=100.0).contains(&self.threshold) {
             return Err(invalid("threshold", "must lie in [0, 100]"));
         }
+        self.locality_window()?;
         let geom = self.world.validate().map_err(|geese_world::ConfigError::Invalid { field, reason }| {
             invalid(&format!("world.{field}"), reason)
         })?;
@@ -257,6 +280,7 @@ impl RunConfig {
             };
             self.world.percept_reach = Some(u32::from(several_actions));
         }
+        let locality = self.locality_window()?;
         let name = self.grammar_name();
         let (grammar, text) = load_grammar(&name)?;
         program
@@ -272,6 +296,7 @@ impl RunConfig {
             program: Arc::new(program),
             follow_up,
             stage,
+            locality,
         })
     }
 
@@ -439,6 +464,24 @@ mod tests {
         c.world.width = 20_000;
         assert_eq!(invalid_of(c).0, "world.width");
         assert_eq!(invalid_of(RunConfig { ip: f64::NAN, ..Default::default() }).0, "ip");
+    }
+
+    #[test]
+    fn the_locality_window_is_checked_and_named() {
+        let with = |w: &str, steps| RunConfig { locality: Some(w.into()), steps, ..Default::default() };
+        let spec = with("5:20", 30).validate().expect("valid");
+        assert_eq!(spec.locality, Some(Window { from: 5, to: 20 }));
+        assert_eq!(with("1:30", 30).validate().expect("valid").locality, Some(Window { from: 1, to: 30 }));
+        assert_eq!(RunConfig { steps: 5, ..Default::default() }.validate().expect("valid").locality, None);
+        for (bad, value) in
+            [("5:3", "\"5:3\""), ("a:b", "\"a\""), ("10", "\"10\""), ("0:3", "\"0:3\""), ("1:31", "\"1:31\"")]
+        {
+            let (f, r) = invalid_of(with(bad, 30));
+            assert_eq!(f, "locality", "{bad}: {r}");
+            assert!(r.contains(value), "{bad}: {r}");
+        }
+        let c = RunConfig::from_toml("steps = 40\nlocality = \"2:40\"\n").expect("parses");
+        assert_eq!(c.locality_window().expect("valid"), Some(Window { from: 2, to: 40 }));
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! launcher itself dies, the world notices the orchestrator's liveliness token vanish
 //! and stops, and the agents follow the world: no orphans either way.
 use crate::config::RunSpec;
-use crate::output::{write_manifest, StepCsv};
+use crate::output::{write_locality, write_manifest, StepCsv};
 use crate::trial::TrialSummary;
 use geese_proto::keys::{self, Parsed};
 use geese_proto::net::{Deadlines, LossRates, NetReport, NetRunSpec, ReportMsg};
@@ -288,6 +288,8 @@ pub struct NetOutcome {
     /// The population the agents ended with (one member per agent whose process wrote
     /// it), in agent order.
     pub members: Vec<geese_agent::program::Member>,
+    /// The locality map the world counted, if the run asked for one.
+    pub locality: Option<Vec<geese_world::locality::Count>>,
 }
 
 /// Where the binaries are: `bin_dir`, else `$GEESE_BIN_DIR`, else next to this
@@ -436,6 +438,13 @@ async fn run_net_async(
     let few = (1..=zenoh_bus::LEAN_WORLD_MAX_PROCESSES).contains(&opts.processes);
     if few && std::env::var_os(zenoh_bus::ZENOH_RUNTIME_ENV).is_none() {
         world.env(zenoh_bus::ZENOH_RUNTIME_ENV, zenoh_bus::LEAN_ZENOH_RUNTIME);
+    }
+    // The world counts the locality map and writes it here as it exits, as agent
+    // processes write their population (`--population-out`).
+    let locality_file = spec.locality.map(|_| std::env::temp_dir().join(format!("geese-{run}-locality.csv")));
+    let _locality_cleanup = locality_file.clone().map(RemoveOnDrop);
+    if let (Some(w), Some(path)) = (spec.locality, &locality_file) {
+        world.arg("--locality").arg(w.to_string()).arg("--locality-out").arg(path);
     }
     world
         .args(opts.zenoh.to_args())
@@ -686,6 +695,16 @@ async fn run_net_async(
     let _ = session.close().await;
     outcome?;
     let members = swarm.take_population();
+    let locality = match &locality_file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(io(format!("the world server wrote no locality map {}", path.display())))?;
+            let counts = geese_world::locality::parse_csv(&text)
+                .map_err(|e| LaunchError::Invalid(format!("locality map {}: {e}", path.display())))?;
+            Some(counts)
+        }
+        None => None,
+    };
     summary.wall_seconds = launched.elapsed().as_secs_f64();
     Ok(NetOutcome {
         wall_seconds: summary.wall_seconds,
@@ -699,6 +718,7 @@ async fn run_net_async(
         agents_per_process: per,
         control_log: control_log.lock().map(|l| l.clone()).unwrap_or_default(),
         members,
+        locality,
     })
 }
 
@@ -769,6 +789,11 @@ pub fn run_cli(spec: &RunSpec, opts: &NetOptions, out: &Path, quiet: bool) -> an
     }
     csv.finish()?;
     net.flush()?;
+    if let Some(counts) = &outcome.locality {
+        let path = write_locality(out, counts).with_context(|| format!("cannot write {}", out.display()))?;
+        let total: u64 = counts.iter().map(|c| c.count).sum();
+        println!("locality map: {} ({total} agent-steps)", path.display());
+    }
     write_manifest(out, spec, "zenoh", &outcome.summary, &outcome.control_log)?;
     Ok(outcome)
 }

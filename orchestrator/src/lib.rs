@@ -17,7 +17,9 @@
 //! - [`metrics`]: success rate, power, efficiency (paper and reference-code variants),
 //!   summary statistics and least-squares slopes; pure functions.
 //! - [`report`]: metric tables and figures from a results database.
-//! - [`plot`]: PNG/SVG figures (learning curves, resilience scatters, box plots).
+//! - [`plot`]: PNG/SVG figures (learning curves, resilience scatters, box plots,
+//!   locality maps).
+//! - [`locality`]: a run's locality map read back and drawn (`geese locality`, Fig. 5).
 //! - [`view`]: the live viewer's web server and page (`geese view`, `geese run --view`).
 //! - [`watch`]: an in-process run with the viewer attached.
 // Doc comments of clap arguments are also `--help` text, where `<run>` or `<db>` reads
@@ -30,6 +32,7 @@ pub mod condition;
 pub mod config;
 pub mod control;
 pub mod launch;
+pub mod locality;
 pub mod metrics;
 pub mod output;
 pub mod plot;

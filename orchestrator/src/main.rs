@@ -10,7 +10,7 @@ use geese_agent::FitnessVariant;
 use geese_agent::Program;
 use geese_orchestrator::campaign::{run_stages, TrialError, TrialRunner};
 use geese_orchestrator::config::{load_grammar, read_population, FollowUp, RunConfig};
-use geese_orchestrator::output::{write_manifest, StepCsv};
+use geese_orchestrator::output::{write_locality, write_manifest, StepCsv};
 use geese_orchestrator::trial::Ran;
 use geese_orchestrator::{bench, Trial};
 use geese_proto::StepReport;
@@ -51,6 +51,9 @@ enum Cmd {
     Report(ReportArgs),
     /// Export a results database to CSV files.
     Export(ExportArgs),
+    /// Draw a run's locality map (Fig. 5, from `geese run --locality`): one panel per
+    /// behaviour class, PNG and SVG.
+    Locality(LocalityArgs),
     /// Send a perturbation or stop to a running distributed world (control plane).
     Control(geese_orchestrator::control::ControlArgs),
     /// Watch a running distributed run in the browser (a read-only client of its bus;
@@ -135,6 +138,10 @@ struct RunArgs {
     /// Switch lateral transfer off for the whole run.
     #[arg(long)]
     no_lateral_transfer: bool,
+    /// Count the locality map (Fig. 5) over steps FROM to TO, both included (step 1 is
+    /// the first step) into locality.csv; draw it with `geese locality`.
+    #[arg(long, value_name = "FROM:TO")]
+    locality: Option<String>,
     /// Output directory (default results/<task>-seed<seed>).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -229,8 +236,43 @@ impl RunArgs {
         if self.no_lateral_transfer {
             c.lateral_transfer = false;
         }
+        if let Some(w) = &self.locality {
+            c.locality = Some(w.clone());
+        }
         Ok(c)
     }
+}
+
+#[derive(Args)]
+struct LocalityArgs {
+    /// A run's output directory (its locality.csv and manifest.json) or a locality.csv.
+    path: PathBuf,
+    /// Write <PREFIX>.png and <PREFIX>.svg [default: locality beside the CSV].
+    #[arg(long, value_name = "PREFIX")]
+    out: Option<PathBuf>,
+}
+
+fn locality_cmd(a: LocalityArgs) -> Result<()> {
+    let map = geese_orchestrator::locality::load(&a.path)?;
+    if map.manifest.is_none() {
+        eprintln!(
+            "no manifest with a locality section beside {}: arena from the data, no landmarks",
+            map.csv.display()
+        );
+    }
+    let stem = a.out.unwrap_or_else(|| map.csv.with_file_name("locality"));
+    if let Some(d) = stem.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
+    }
+    let t = map.totals();
+    println!(
+        "agent-steps by class: none {}, Explore {}, CompositeSingleCarry {}, CompositeDrop {}, MoveTowards {}, MoveAway {}",
+        t[0], t[1], t[2], t[3], t[4], t[5]
+    );
+    for p in map.draw(&stem)? {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
 }
 
 #[derive(Subcommand)]
@@ -563,6 +605,10 @@ fn in_process_run(
     csv.finish()?;
     let mut summary = trial.summary().clone();
     summary.wall_seconds = start.elapsed().as_secs_f64();
+    if let Some(l) = trial.world.locality() {
+        let path = write_locality(out, &l.counts()).with_context(|| format!("cannot write {}", out.display()))?;
+        println!("locality map: {} ({} agent-steps over {} steps)", path.display(), l.agent_steps(), l.steps());
+    }
     write_manifest(out, spec, "in-process", &summary, &[])?;
     println!("final task %: {:.2}", summary.final_task_pct);
     match summary.first_step_at_threshold {
@@ -694,6 +740,7 @@ fn main() -> Result<()> {
         Cmd::Campaign(a) => campaign_cli::campaign_cmd(a),
         Cmd::Report(a) => campaign_cli::report_cmd(a),
         Cmd::Export(a) => campaign_cli::export_cmd(a),
+        Cmd::Locality(a) => locality_cmd(a),
         Cmd::Control(a) => geese_orchestrator::control::control_cmd(a),
         Cmd::View(a) => geese_orchestrator::view::view_cmd(a),
     }

@@ -621,6 +621,130 @@ fn draw_boxes<DB: DrawingBackend>(
     Ok(())
 }
 
+/// One panel of a locality map: the agent-steps of one behaviour class per location.
+#[derive(Clone, Debug)]
+pub struct LocalityPanel {
+    pub title: String,
+    /// (x, y, agent-steps), every count positive.
+    pub points: Vec<(i32, i32, u64)>,
+}
+
+/// An object drawn under the points: the box of grid cells it occupies.
+#[derive(Clone, Debug)]
+pub struct LocalityBox {
+    pub label: String,
+    /// (x1, y1, x2, y2).
+    pub cells: (i32, i32, i32, i32),
+    /// Impassable (drawn filled grey).
+    pub solid: bool,
+}
+
+/// Largest marker radius of a locality map, in pixels.
+const LOCALITY_MAX_RADIUS: f64 = 16.0;
+
+/// Marker radius for `count` agent-steps when the largest count of the figure is `max`:
+/// the marker's area is proportional to the count (radius ∝ √count, the reference's
+/// Matplotlib `s = count`), the largest [`LOCALITY_MAX_RADIUS`] pixels, none below 1.
+pub fn locality_radius(count: u64, max: u64) -> i32 {
+    let r = LOCALITY_MAX_RADIUS * (count as f64 / max.max(1) as f64).sqrt();
+    (r.round() as i32).clamp(1, LOCALITY_MAX_RADIUS as i32)
+}
+
+/// The locality map (Fig. 5): one scatter per panel on the same axes, the arena
+/// `[-half_w, half_w] × [-half_h, half_h]`, with `boxes` drawn under the points; a last
+/// panel overlays every class as the reference's single figure does. Marker sizes share
+/// one scale over all panels ([`locality_radius`]).
+pub fn locality(
+    stem: &Path,
+    title: &str,
+    panels: &[LocalityPanel],
+    (half_w, half_h): (i32, i32),
+    boxes: &[LocalityBox],
+) -> Result<Vec<PathBuf>, PlotError> {
+    let cols = 3u32;
+    let rows = (panels.len() as u32 + 1).div_ceil(cols).max(1);
+    let side = 440u32;
+    let size = (cols * side, rows * (side + 10) + 40);
+    let half = (half_w, half_h);
+    both(
+        stem,
+        size,
+        |r| draw_locality(r, title, panels, half, boxes, cols, rows),
+        |r| draw_locality(r, title, panels, half, boxes, cols, rows),
+    )
+}
+
+fn draw_locality<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    title: &str,
+    panels: &[LocalityPanel],
+    (half_w, half_h): (i32, i32),
+    boxes: &[LocalityBox],
+    cols: u32,
+    rows: u32,
+) -> Drawn {
+    let root = root.titled(title, (FONT, 18)).map_err(s)?;
+    let areas = root.split_evenly((rows as usize, cols as usize));
+    let max = panels.iter().flat_map(|p| p.points.iter().map(|q| q.2)).max().unwrap_or(1);
+    let (xr, yr) = (-f64::from(half_w)..f64::from(half_w), -f64::from(half_h)..f64::from(half_h));
+    // Panel i shows class i alone; the one after the last overlays them all.
+    for (k, area) in areas.iter().enumerate().take(panels.len() + 1) {
+        let overlay = k == panels.len();
+        let caption =
+            if overlay { "All classes (as the reference's figure)".to_string() } else { panels[k].title.clone() };
+        let mut chart = ChartBuilder::on(area)
+            .caption(caption, (FONT, 15))
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(36)
+            .build_cartesian_2d(xr.clone(), yr.clone())
+            .map_err(s)?;
+        chart
+            .configure_mesh()
+            .x_labels(5)
+            .y_labels(5)
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| format!("{v:.0}"))
+            .label_style((FONT, 12))
+            .light_line_style(WHITE.mix(0.0))
+            .bold_line_style(BLACK.mix(0.08))
+            .draw()
+            .map_err(s)?;
+        for b in boxes {
+            let (x1, y1, x2, y2) = b.cells;
+            let corners = [(f64::from(x1), f64::from(y1)), (f64::from(x2), f64::from(y2))];
+            let style = if b.solid { BLACK.mix(0.3).filled() } else { BLACK.mix(0.7).stroke_width(1) };
+            chart.draw_series(std::iter::once(Rectangle::new(corners, style))).map_err(s)?;
+            let label = Text::new(b.label.clone(), (f64::from(x1), f64::from(y2)), (FONT, 12).into_font());
+            chart.draw_series(std::iter::once(label)).map_err(s)?;
+        }
+        let shown: Vec<usize> = if overlay { (0..panels.len()).collect() } else { vec![k] };
+        for i in shown {
+            let col = color(i);
+            let dots = panels[i].points.iter().map(move |&(x, y, c)| {
+                Circle::new((f64::from(x), f64::from(y)), locality_radius(c, max), col.mix(0.5).filled())
+            });
+            let series = chart.draw_series(dots).map_err(s)?;
+            if overlay {
+                series
+                    .label(panels[i].title.split(" (").next().unwrap_or("").to_string())
+                    .legend(move |(x, y)| Circle::new((x + 8, y), 5, col.mix(0.7).filled()));
+            }
+        }
+        if overlay && !panels.is_empty() {
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerLeft)
+                .label_font((FONT, 12))
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK.mix(0.5))
+                .draw()
+                .map_err(s)?;
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -644,6 +768,14 @@ mod tests {
         assert_eq!(corner(&[g(&[5.0]), g(&[70.0, 95.0])]), SeriesLabelPosition::LowerRight);
         assert_eq!(corner(&[g(&[60.0, 99.0]), g(&[10.0, 90.0])]), SeriesLabelPosition::LowerLeft);
         assert_eq!(corner(&[g(&[10.0, 90.0]), g(&[10.0, 90.0])]), SeriesLabelPosition::UpperRight);
+    }
+
+    #[test]
+    fn locality_markers_grow_with_the_square_root_of_the_count() {
+        assert_eq!(locality_radius(100, 100), LOCALITY_MAX_RADIUS as i32);
+        assert_eq!(locality_radius(25, 100), (LOCALITY_MAX_RADIUS / 2.0) as i32);
+        assert_eq!(locality_radius(1, 1_000_000), 1);
+        assert_eq!(locality_radius(5, 0), LOCALITY_MAX_RADIUS as i32);
     }
 
     #[test]

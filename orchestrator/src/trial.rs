@@ -97,6 +97,9 @@ impl Trial {
         for p in &cfg.perturbations {
             world.schedule(p.at, p.change.clone());
         }
+        if let Some(w) = spec.locality {
+            world.record_locality(w);
+        }
         let geom = world.geometry();
         let hub = world.hub();
         let prepared =

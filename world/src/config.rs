@@ -78,6 +78,11 @@ pub struct WorldConfig {
     pub boundary_distance: i32,
     /// Obstacles placed by the obstacle rule when the world is built.
     pub obstacles: u32,
+    /// Obstacles at these positions, placed right after the hub (before the sites,
+    /// items and rule-placed obstacles): the locality world of Fig. 5 has four
+    /// (REFERENCE §1.4). Radius `obstacle_radius`.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub fixed_obstacles: Vec<Pos>,
     pub obstacle_radius: i32,
     /// Start positions; `None` = the layout's default (random / hub).
     pub start: Option<Start>,
@@ -105,6 +110,7 @@ impl Default for WorldConfig {
             boundaries: 5,
             boundary_distance: 31,
             obstacles: 0,
+            fixed_obstacles: Vec::new(),
             obstacle_radius: 10,
             start: None,
             percept_reach: None,
@@ -168,6 +174,15 @@ impl WorldConfig {
         if self.obstacles > 100 {
             return Err(bad("obstacles", format!("{} exceeds 100 initial obstacles", self.obstacles)));
         }
+        if self.fixed_obstacles.len() > 100 {
+            return Err(bad(
+                "fixed_obstacles",
+                format!("{} exceeds 100 initial obstacles", self.fixed_obstacles.len()),
+            ));
+        }
+        if let Some((i, p)) = self.fixed_obstacles.iter().enumerate().find(|(_, p)| !geom.contains(**p)) {
+            return Err(bad("fixed_obstacles", format!("[{i}] ({}, {}) lies outside the arena", p.x, p.y)));
+        }
         if self.percept_reach.is_some_and(|r| r > 3) {
             return Err(bad("percept_reach", format!("{} exceeds 3 cells", self.percept_reach.unwrap_or(0))));
         }
@@ -229,6 +244,11 @@ mod tests {
             (WorldConfig { obstacle_radius: 101, ..Default::default() }, "obstacle_radius", "101"),
             (WorldConfig { obstacle_radius: i32::MAX, ..Default::default() }, "obstacle_radius", "2147483647"),
             (WorldConfig { obstacles: 101, ..Default::default() }, "obstacles", "101"),
+            (
+                WorldConfig { fixed_obstacles: vec![Pos::new(0, 51)], ..Default::default() },
+                "fixed_obstacles",
+                "(0, 51)",
+            ),
         ];
         for (cfg, key, value) in cases {
             let (field, msg) = field_of(cfg);

@@ -106,8 +106,24 @@ pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigErr
     let hub = w.add_object(ObjectKind::Hub, Pos::new(0, 0), BIG_RADIUS);
     let hub_pos = w.objects().nth(hub as usize).map(|o| o.info.pos).unwrap_or_default();
     let items = cfg.item_count();
+    // Before everything the rules place, so that those rules avoid them.
+    for (i, &p) in cfg.fixed_obstacles.iter().enumerate() {
+        if w.area_has_objects(p, cfg.obstacle_radius) {
+            return Err(ConfigError::Invalid {
+                field: "fixed_obstacles",
+                reason: format!("[{i}] ({}, {}) overlaps the hub or an earlier obstacle", p.x, p.y),
+            });
+        }
+        w.add_object(ObjectKind::Obstacles, p, cfg.obstacle_radius);
+    }
     match (cfg.task, cfg.layout) {
         (Task::Foraging, Layout::Reference) => {
+            if w.area_blocked(cfg.site, BIG_RADIUS) {
+                return Err(ConfigError::Invalid {
+                    field: "site",
+                    reason: format!("({}, {}) lies under a fixed obstacle", cfg.site.x, cfg.site.y),
+                });
+            }
             w.add_object(ObjectKind::Sites, cfg.site, BIG_RADIUS);
             for _ in 0..items {
                 w.add_object(ObjectKind::Food, cfg.site, BIG_RADIUS);

@@ -10,6 +10,8 @@
 //! - [`world`]: objects, grid registration, percepts, intent resolution, task %, hooks.
 //! - [`pace`]: pause, step-rate limit and frame-rate bound of a watched run (sans IO).
 //! - [`frame`]: the live viewer's picture of a world.
+//! - [`locality`]: the locality map (Fig. 5): agent-steps per location and behaviour
+//!   class over a window of steps, counted by the world.
 //! - [`gather`]: the server's gathering of one step's intents (sans IO).
 //! - [`hub`]: the server's gene hub: per-cell aggregation and forwarding of gene packs
 //!   between agent processes (sans IO).
@@ -21,6 +23,7 @@ pub mod frame;
 pub mod gather;
 pub mod hub;
 pub mod layout;
+pub mod locality;
 pub mod pace;
 pub mod server;
 pub mod world;

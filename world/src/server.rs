@@ -169,6 +169,12 @@ impl Server {
         &self.world
     }
 
+    /// Count the locality map of `window` ([`World::record_locality`]); call before the
+    /// run starts, as the in-process driver does.
+    pub fn record_locality(&mut self, window: crate::locality::Window) {
+        self.world.record_locality(window);
+    }
+
     /// Steps completed so far.
     pub fn steps_done(&self) -> u64 {
         self.steps_done

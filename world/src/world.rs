@@ -1,6 +1,7 @@
 //! Authoritative world state: objects, agent bodies, grid registration, percepts,
 //! intent resolution, task percentage and scheduled perturbations.
 use crate::config::{ConfigError, Task, WorldConfig};
+use crate::locality::{Locality, Window};
 use geese_proto::rules::{self, DropOutcome};
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
@@ -85,6 +86,8 @@ pub struct World {
     obstacles_unplaced: u64,
     /// Perturbations applied so far: (step, what), for the live view's chart.
     events: Vec<(u64, String)>,
+    /// The locality map being counted, if the run asked for one.
+    locality: Option<Locality>,
 }
 
 impl World {
@@ -105,6 +108,7 @@ impl World {
             delivered_weight: 0,
             obstacles_unplaced: 0,
             events: Vec::new(),
+            locality: None,
             cfg,
         };
         let mut rng = ChaCha8Rng::seed_from_u64(derive(seed, Owner::World, Purpose::Layout));
@@ -148,6 +152,18 @@ impl World {
 
     pub fn obstacles_unplaced(&self) -> u64 {
         self.obstacles_unplaced
+    }
+
+    /// Count the locality map of `window` from now on (steps already resolved are not
+    /// counted again). Without this call the world counts nothing and pays one branch a
+    /// step.
+    pub fn record_locality(&mut self, window: Window) {
+        self.locality = Some(Locality::new(window));
+    }
+
+    /// The locality map counted so far, if [`World::record_locality`] asked for one.
+    pub fn locality(&self) -> Option<&Locality> {
+        self.locality.as_ref()
     }
 
     // ---------------------------------------------------------------- construction
@@ -225,6 +241,11 @@ impl World {
     /// Is any non-agent object registered in any cell of N(p, r)?
     pub(crate) fn area_has_objects(&self, p: Pos, r: i32) -> bool {
         self.geom.any_neighbourhood_cell(p, r, |c| !self.cells[c as usize].objects.is_empty())
+    }
+
+    /// Is an impassable object registered in any cell of N(p, r)?
+    pub(crate) fn area_blocked(&self, p: Pos, r: i32) -> bool {
+        self.geom.any_neighbourhood_cell(p, r, |c| self.cell_blocked(c))
     }
 
     fn cell_blocked(&self, cell: CellIdx) -> bool {
@@ -364,6 +385,10 @@ impl World {
         }
         rep.digest = digest.finish();
         rep.task_pct = self.task_pct();
+        // Where everyone stands after acting, before the hooks (crate::locality docs).
+        if let Some(l) = self.locality.as_mut() {
+            l.record(self.step, &self.bodies);
+        }
         self.run_hooks();
         rep.live_agents = self.live_agents();
         self.step += 1;
@@ -697,6 +722,33 @@ mod tests {
     }
 
     #[test]
+    fn the_locality_world_has_its_four_fixed_obstacles() {
+        // REFERENCE §1.4: hub (0,0), site (−30,30), obstacles at (−30,−30), (30,−30),
+        // (30,30), (−15,0), agents at the hub.
+        let at = [Pos::new(-30, -30), Pos::new(30, -30), Pos::new(30, 30), Pos::new(-15, 0)];
+        let cfg = WorldConfig {
+            site: Pos::new(-30, 30),
+            fixed_obstacles: at.to_vec(),
+            start: Some(Start::Hub),
+            ..Default::default()
+        };
+        let w = World::new(cfg.clone(), 1).unwrap();
+        let obs: Vec<Pos> = w.objects().filter(|o| o.info.kind == ObjectKind::Obstacles).map(|o| o.info.pos).collect();
+        assert_eq!(obs, at);
+        assert!(w.objects().any(|o| o.info.kind == ObjectKind::Sites && o.info.pos == Pos::new(-30, 30)));
+        assert!(w.bodies().iter().all(|b| b.pos == Pos::new(0, 0)));
+        // An obstacle on the hub or under the site, or two in one cell, is refused by name.
+        for (bad, field) in [
+            (vec![Pos::new(3, 3)], "fixed_obstacles"),
+            (vec![Pos::new(-25, 35)], "site"),
+            (vec![Pos::new(30, -30), Pos::new(31, -29)], "fixed_obstacles"),
+        ] {
+            let e = World::new(WorldConfig { fixed_obstacles: bad, ..cfg.clone() }, 1).err().expect("refused");
+            assert!(e.to_string().starts_with(&format!("world.{field}: ")), "{e}");
+        }
+    }
+
+    #[test]
     fn same_seed_same_world_different_seed_different_world() {
         let a = World::new(WorldConfig::default(), 5).unwrap();
         let b = World::new(WorldConfig::default(), 5).unwrap();
@@ -874,6 +926,28 @@ mod tests {
             }
             let pos = |w: &World| w.objects().map(|o| o.info.pos).collect::<Vec<_>>();
             assert_eq!(pos(&a), pos(&b));
+        }
+    }
+
+    #[test]
+    fn the_locality_map_counts_live_agents_after_each_step_before_its_hooks() {
+        let mut w = world(Task::Foraging, 4);
+        assert!(w.locality().is_none());
+        w.record_locality("2:3".parse().expect("window"));
+        // Half the agents die right after step 2: they count at step 2, not at 3.
+        w.schedule(2, Perturbation::KillFraction(0.5));
+        let mut mover = intent(&w, 0, 0.0, vec![Op::Move { to: Pos::new(2, 0), heading: 0.0 }]);
+        mover.stats.class = BehaviourClass::MoveTowards;
+        w.resolve(&[Some(mover), None, None, None]);
+        for _ in 2..=4 {
+            w.resolve(&[None, None, None, None]);
+        }
+        let l = w.locality().expect("recording");
+        assert_eq!((l.steps(), l.agent_steps()), (2, 4 + 2));
+        // Agent 0 stands where its step-1 intent took it, under the class it reported
+        // (missing intents since); the others never reported a class.
+        for c in l.counts() {
+            assert!(matches!((c.x, c.y, c.class), (2, 0, 4) | (0, 0, 0)), "{c:?}");
         }
     }
 

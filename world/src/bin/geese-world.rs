@@ -15,6 +15,7 @@ use geese_proto::keys;
 use geese_proto::net::NetRunSpec;
 use geese_proto::zenoh_bus::{self, CommonArgs};
 use geese_world::hub::Released;
+use geese_world::locality::Window;
 use geese_world::server::{Next, Server};
 use std::io::Write;
 use std::path::PathBuf;
@@ -36,6 +37,13 @@ struct Args {
     /// Tokio worker threads of the server loop.
     #[arg(long, default_value_t = 1)]
     threads: usize,
+    /// Count the locality map (Fig. 5) over steps FROM to TO, both included (step 1 is
+    /// the first step).
+    #[arg(long, value_name = "FROM:TO", requires = "locality_out")]
+    locality: Option<Window>,
+    /// Where to write the locality map (CSV: x,y,class,count) when the run ends.
+    #[arg(long, value_name = "FILE", requires = "locality")]
+    locality_out: Option<PathBuf>,
 }
 
 /// mimalloc: the step loop allocates many small, short-lived buffers.
@@ -56,7 +64,8 @@ fn main() -> Result<()> {
         bail!("run name {:?} must be one key chunk of letters, digits, '_', '-', '.'", spec.run);
     }
     let rt = zenoh_bus::runtime(args.threads)?;
-    rt.block_on(serve(args.zenoh, spec))
+    let locality = args.locality.zip(args.locality_out);
+    rt.block_on(serve(args.zenoh, spec, locality))
 }
 
 /// The server, shared by the Zenoh callbacks and the loop (never held across an await).
@@ -67,9 +76,13 @@ fn lock(s: &Shared) -> MutexGuard<'_, Server> {
     s.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
+async fn serve(common: CommonArgs, spec: NetRunSpec, locality: Option<(Window, PathBuf)>) -> Result<()> {
     let run = spec.run.clone();
-    let server: Shared = Arc::new(Mutex::new(Server::new(spec, Instant::now())?));
+    let mut s = Server::new(spec, Instant::now())?;
+    if let Some((w, _)) = &locality {
+        s.record_locality(*w);
+    }
+    let server: Shared = Arc::new(Mutex::new(s));
     let (session, locators) = zenoh_bus::open_world(&common).await?;
     // Woken whenever an input may let the loop go on (the last intent of a step, a
     // process leaving, a stop).
@@ -152,12 +165,23 @@ async fn serve(common: CommonArgs, spec: NetRunSpec) -> Result<()> {
     eprintln!("geese-world: run {run} listening on {}", locators.join(", "));
 
     let outcome = drive(&session, &server, &wake).await;
+    // Before leaving: the launcher reads the file once this process has exited.
+    let written = match &locality {
+        Some((_, path)) => {
+            let counts = lock(&server).world().locality().map(|l| l.counts()).unwrap_or_default();
+            std::fs::File::create(path)
+                .and_then(|f| geese_world::locality::write_csv(&counts, std::io::BufWriter::new(f)))
+                .with_context(|| format!("cannot write the locality map {}", path.display()))
+        }
+        None => Ok(()),
+    };
     drop(publish);
     let _ = token.undeclare().await;
     // Give the last messages a moment to leave before the router goes away.
     tokio::time::sleep(Duration::from_millis(100)).await;
     let _ = session.close().await;
-    outcome.map(|_| ())
+    outcome.map(|_| ())?;
+    written
 }
 
 /// Files what arrives on `key` into the server with `file` (in the subscriber callback)
