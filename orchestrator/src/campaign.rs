@@ -510,7 +510,9 @@ pub struct StageCache {
 }
 
 impl StageCache {
-    fn key(spec: &RunSpec) -> String {
+    /// The key of a stage: trials with the same key share the stage (and the shards of
+    /// a campaign keep them together, [`crate::shard`]).
+    pub(crate) fn key(spec: &RunSpec) -> String {
         let mut c = spec.config.clone();
         // Settings read only by the fixed test that follows.
         c.sample = None;

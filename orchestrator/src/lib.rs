@@ -13,6 +13,7 @@
 //! - [`condition`]: the knobs a campaign varies and how a condition builds a run config.
 //! - [`campaign`]: campaign files, the trial plan, the [`campaign::TrialRunner`] hook and
 //!   the parallel, resumable executor.
+//! - [`shard`]: a campaign split into N cost-balanced shards (cluster job arrays).
 //! - [`store`]: the SQLite results database (manifest, trials, step rows) and CSV export.
 //! - [`metrics`]: success rate, power, efficiency (paper and reference-code variants),
 //!   summary statistics and least-squares slopes; pure functions.
@@ -32,6 +33,7 @@ pub mod metrics;
 pub mod output;
 pub mod plot;
 pub mod report;
+pub mod shard;
 pub mod store;
 pub mod trial;
 
