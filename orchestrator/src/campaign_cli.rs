@@ -1,9 +1,10 @@
-//! The `geese campaign`, `geese report` and `geese export` subcommands (binary only):
+//! The `geese campaign`, `geese merge`, `geese report` and `geese export` subcommands (binary only):
 //! argument parsing and printing around the library's campaign, store and report.
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use geese_orchestrator::campaign::{Campaign, CampaignError, CampaignFile, InProcess, RunOptions, TrialRunner};
 use geese_orchestrator::launch::{NetOptions, OverZenoh};
+use geese_orchestrator::merge;
 use geese_orchestrator::metrics::{EfficiencyVariant, PowerVariant};
 use geese_orchestrator::report::{self, EfficiencyChoice, ReportOptions};
 use geese_orchestrator::shard::{self, Shard};
@@ -100,6 +101,16 @@ pub struct ReportArgs {
 }
 
 #[derive(Args)]
+pub struct MergeArgs {
+    /// Results database to merge into (created if needed; one that already holds some
+    /// of the campaign's trials is completed).
+    pub out: PathBuf,
+    /// Databases of the campaign's shards (`geese campaign --shard I/N`), in any order.
+    #[arg(required = true)]
+    pub shards: Vec<PathBuf>,
+}
+
+#[derive(Args)]
 pub struct ExportArgs {
     /// Results database written by `geese campaign`.
     pub db: PathBuf,
@@ -184,9 +195,38 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         println!("campaign wall time over {sessions} invocations: {total:.1} s");
     }
     match a.shard {
-        Some(s) => println!("results of shard {s}: {}  (merge the shards into one database)", db.display()),
+        Some(s) => println!("results of shard {s}: {}  (geese merge OUT.sqlite <the N shard databases>)", db.display()),
         None => println!("results: {}  (geese report {})", db.display(), db.display()),
     }
+    Ok(())
+}
+
+pub fn merge_cmd(a: MergeArgs) -> Result<()> {
+    let start = std::time::Instant::now();
+    let o = merge::merge(&a.out, &a.shards)?;
+    println!(
+        "merged {} database(s) into {}: {} trial(s) added, {} already there, {} failed trial(s) replaced by finished ones",
+        a.shards.len(),
+        a.out.display(),
+        o.added,
+        o.already,
+        o.replaced_failed
+    );
+    let of = o.planned.map(|p| format!(" of the campaign's {p}")).unwrap_or_default();
+    println!("{} now holds {} trial(s){of}: {} done, {} failed", a.out.display(), o.trials, o.done, o.failed);
+    if !o.shards.is_empty() {
+        println!("shards merged: {}", o.shards.join(" "));
+    }
+    if !o.missing_shards.is_empty() {
+        println!("shards not merged yet: {}", o.missing_shards.join(" "));
+    }
+    for p in &o.unfinished {
+        println!("note: the last invocation of {} did not finish (still running, or stopped): resume it and merge again", p.display());
+    }
+    if o.versions_differ {
+        println!("note: the databases were written by different geese versions (see their manifests)");
+    }
+    println!("merge time: {:.2} s", start.elapsed().as_secs_f64());
     Ok(())
 }
 

@@ -15,6 +15,7 @@
 //!   the parallel, resumable executor.
 //! - [`shard`]: a campaign split into N cost-balanced shards (cluster job arrays).
 //! - [`store`]: the SQLite results database (manifest, trials, step rows) and CSV export.
+//! - [`merge`]: shard databases combined into one results database (`geese merge`).
 //! - [`metrics`]: success rate, power, efficiency (paper and reference-code variants),
 //!   summary statistics and least-squares slopes; pure functions.
 //! - [`report`]: metric tables and figures from a results database.
@@ -29,6 +30,7 @@ pub mod condition;
 pub mod config;
 pub mod control;
 pub mod launch;
+pub mod merge;
 pub mod metrics;
 pub mod output;
 pub mod plot;

@@ -215,7 +215,8 @@ impl StoredTrial {
 }
 
 pub struct Store {
-    conn: Connection,
+    /// Crate-visible for [`crate::merge`], which writes a whole merge in one transaction.
+    pub(crate) conn: Connection,
     path: PathBuf,
     /// The trials table has `stage_wall_seconds` (false: a read-only version-0 file).
     has_stage_wall: bool,
