@@ -13,8 +13,10 @@ use crate::condition::{Condition, Coupling, Knob, Level, DEFAULT_STOP_INTERVAL};
 use crate::config::{RunConfig, RunSpec};
 use crate::metrics::{self, EfficiencyVariant};
 use crate::output::text_digest;
+use crate::shard::{self, Shard};
 use crate::store::{Store, StoreError, TrialRecord, TrialResult};
 use crate::trial::{run_trial, Ran};
+use geese_proto::seed::Fnv64;
 use geese_proto::StepReport;
 use geese_world::Task;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -327,6 +329,34 @@ impl Campaign {
     pub fn digest(&self) -> String {
         text_digest(&self.text)
     }
+
+    /// Digest of the resolved campaign: its name, the file as resolved (command-line
+    /// overrides of seeds, steps and agents included) and every trial's key and
+    /// configuration. The shards of one campaign must agree on it before `geese merge`
+    /// combines them: unlike [`Campaign::digest`] (of the file's text) it changes when
+    /// `--steps` or a grammar file differs between two invocations, and not when only a
+    /// comment of the file does.
+    pub fn resolved_digest(&self) -> String {
+        let mut h = Fnv64::default();
+        // Length-prefixed fields: no two different field lists hash the same bytes.
+        let mut field = |s: &str| {
+            h.write(&(s.len() as u64).to_le_bytes());
+            h.write(s.as_bytes());
+        };
+        field(&self.name);
+        field(&serde_json::to_string(&self.file).unwrap_or_default());
+        for t in self.plan() {
+            let r = self.record(&t);
+            for f in [&r.condition, &r.condition_json, &r.x_label, &r.series, &r.task] {
+                field(f);
+            }
+            for f in [&r.config_json, &r.grammar, &r.grammar_digest] {
+                field(f);
+            }
+            field(&format!("{} {} {}", r.seed, r.condition_index, r.x.to_bits()));
+        }
+        format!("{:016x}", h.finish())
+    }
 }
 
 fn level_position(conditions: &[Condition], knob: Option<Knob>, condition: usize) -> (f64, String) {
@@ -517,7 +547,9 @@ pub struct StageCache {
 }
 
 impl StageCache {
-    fn key(spec: &RunSpec) -> String {
+    /// The key of a stage: trials with the same key share the stage (and the shards of
+    /// a campaign keep them together, [`crate::shard`]).
+    pub(crate) fn key(spec: &RunSpec) -> String {
         let mut c = spec.config.clone();
         // Settings read only by the fixed test that follows.
         c.sample = None;
@@ -556,6 +588,8 @@ pub struct RunOptions {
     pub retry_failed: bool,
     /// No progress bar.
     pub quiet: bool,
+    /// Run only this shard's trials ([`crate::shard`]); the store records the shard.
+    pub shard: Option<Shard>,
 }
 
 /// What a campaign invocation did.
@@ -578,8 +612,11 @@ pub fn run_campaign(
     opts: &RunOptions,
 ) -> Result<CampaignOutcome, CampaignError> {
     let start = std::time::Instant::now();
-    let session = store.begin_session(campaign)?;
-    let plan = campaign.plan();
+    let session = store.begin_session_in(campaign, opts.shard)?;
+    let plan = match opts.shard {
+        Some(s) => shard::plan(campaign, s),
+        None => campaign.plan(),
+    };
     let mut pending = Vec::new();
     let mut skipped = 0;
     for t in &plan {

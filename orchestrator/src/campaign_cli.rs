@@ -1,11 +1,13 @@
-//! The `geese campaign`, `geese report` and `geese export` subcommands (binary only):
+//! The `geese campaign`, `geese merge`, `geese report` and `geese export` subcommands (binary only):
 //! argument parsing and printing around the library's campaign, store and report.
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use geese_orchestrator::campaign::{Campaign, CampaignError, CampaignFile, InProcess, RunOptions, TrialRunner};
 use geese_orchestrator::launch::{NetOptions, OverZenoh};
+use geese_orchestrator::merge;
 use geese_orchestrator::metrics::{EfficiencyVariant, PowerVariant};
 use geese_orchestrator::report::{self, EfficiencyChoice, ReportOptions};
+use geese_orchestrator::shard::{self, Shard};
 use geese_orchestrator::store::Store;
 use geese_proto::zenoh_bus::CommonArgs;
 use std::path::PathBuf;
@@ -14,10 +16,17 @@ use std::path::PathBuf;
 pub struct CampaignArgs {
     /// Campaign file (TOML; see campaigns/ and the README).
     pub file: PathBuf,
-    /// Results database (default results/<campaign name>.sqlite). An existing database
-    /// of the same campaign is resumed: finished trials are not run again.
+    /// Results database (default results/<campaign name>.sqlite, with --shard
+    /// results/<campaign name>.shard-I-of-N.sqlite). An existing database of the same
+    /// campaign (and shard) is resumed: finished trials are not run again.
     #[arg(long)]
     pub db: Option<PathBuf>,
+    /// Run only shard I of N: a deterministic, cost-balanced 1/N of the trials (every
+    /// shard computes the same split from the campaign alone). I counts from 1, as
+    /// $SLURM_ARRAY_TASK_ID does with --array=1-N. Combine the shards' databases with
+    /// `geese merge`.
+    #[arg(long, value_name = "I/N")]
+    pub shard: Option<Shard>,
     /// Trials run at once (default: one per core).
     #[arg(long, short = 'j')]
     pub jobs: Option<usize>,
@@ -92,6 +101,16 @@ pub struct ReportArgs {
 }
 
 #[derive(Args)]
+pub struct MergeArgs {
+    /// Results database to merge into (created if needed; one that already holds some
+    /// of the campaign's trials is completed).
+    pub out: PathBuf,
+    /// Databases of the campaign's shards (`geese campaign --shard I/N`), in any order.
+    #[arg(required = true)]
+    pub shards: Vec<PathBuf>,
+}
+
+#[derive(Args)]
 pub struct ExportArgs {
     /// Results database written by `geese campaign`.
     pub db: PathBuf,
@@ -117,7 +136,10 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
     let stem = a.file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "campaign".into());
     let campaign = Campaign::new_in(file, text, &stem, a.file.parent())
         .with_context(|| format!("campaign {}", a.file.display()))?;
-    let db = a.db.clone().unwrap_or_else(|| PathBuf::from(format!("results/{}.sqlite", campaign.name)));
+    let db = a.db.clone().unwrap_or_else(|| match a.shard {
+        Some(s) => PathBuf::from(format!("results/{}.{}.sqlite", campaign.name, s.file_tag())),
+        None => PathBuf::from(format!("results/{}.sqlite", campaign.name)),
+    });
     let mut store = Store::create(&db)?;
     // The transport is chosen here; both runners report the same steps for a seed.
     let over_zenoh = a.processes.map(|processes| OverZenoh {
@@ -135,11 +157,13 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         None => &InProcess,
     };
     let plan = campaign.plan();
+    let part = a.shard.map(|s| (s, shard::plan(&campaign, s).len()));
     // A distributed trial already spreads over the cores: one at a time by default.
     let jobs = a.jobs.unwrap_or(if over_zenoh.is_some() { 1 } else { 0 });
     let threads = if jobs == 0 { std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) } else { jobs };
+    let of_them = part.map(|(s, n)| format!(", shard {s}: {n} of them")).unwrap_or_default();
     eprintln!(
-        "geese campaign {}: {} conditions × {} task(s) × {} seeds = {} trials, {} at a time ({}), results in {}",
+        "geese campaign {}: {} conditions × {} task(s) × {} seeds = {} trials{of_them}, {} at a time ({}), results in {}",
         campaign.name,
         campaign.conditions.len(),
         campaign.file.tasks.len(),
@@ -149,7 +173,7 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         runner.transport(),
         db.display()
     );
-    let opts = RunOptions { jobs, retry_failed: a.retry_failed, quiet: a.quiet };
+    let opts = RunOptions { jobs, retry_failed: a.retry_failed, quiet: a.quiet, shard: a.shard };
     let out = match geese_orchestrator::campaign::run_campaign(&campaign, &mut store, runner, &opts) {
         Err(e @ CampaignError::Interrupted { .. }) => {
             eprintln!("{e}");
@@ -170,7 +194,42 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
     if sessions > 1 {
         println!("campaign wall time over {sessions} invocations: {total:.1} s");
     }
-    println!("results: {}  (geese report {})", db.display(), db.display());
+    match a.shard {
+        Some(s) => println!("results of shard {s}: {}  (geese merge OUT.sqlite <the N shard databases>)", db.display()),
+        None => println!("results: {}  (geese report {})", db.display(), db.display()),
+    }
+    Ok(())
+}
+
+pub fn merge_cmd(a: MergeArgs) -> Result<()> {
+    let start = std::time::Instant::now();
+    let o = merge::merge(&a.out, &a.shards)?;
+    println!(
+        "merged {} database(s) into {}: {} trial(s) added, {} already there, {} failed trial(s) replaced by finished ones",
+        a.shards.len(),
+        a.out.display(),
+        o.added,
+        o.already,
+        o.replaced_failed
+    );
+    let of = o.planned.map(|p| format!(" of the campaign's {p}")).unwrap_or_default();
+    println!("{} now holds {} trial(s){of}: {} done, {} failed", a.out.display(), o.trials, o.done, o.failed);
+    if !o.shards.is_empty() {
+        println!("shards merged: {}", o.shards.join(" "));
+    }
+    if !o.missing_shards.is_empty() {
+        println!("shards not merged yet: {}", o.missing_shards.join(" "));
+    }
+    for p in &o.unfinished {
+        println!(
+            "note: the last invocation of {} did not finish (still running, or stopped): resume it and merge again",
+            p.display()
+        );
+    }
+    if o.versions_differ {
+        println!("note: the databases were written by different geese versions (see their manifests)");
+    }
+    println!("merge time: {:.2} s", start.elapsed().as_secs_f64());
     Ok(())
 }
 

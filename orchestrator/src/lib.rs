@@ -13,7 +13,9 @@
 //! - [`condition`]: the knobs a campaign varies and how a condition builds a run config.
 //! - [`campaign`]: campaign files, the trial plan, the [`campaign::TrialRunner`] hook and
 //!   the parallel, resumable executor.
+//! - [`shard`]: a campaign split into N cost-balanced shards (cluster job arrays).
 //! - [`store`]: the SQLite results database (manifest, trials, step rows) and CSV export.
+//! - [`merge`]: shard databases combined into one results database (`geese merge`).
 //! - [`metrics`]: success rate, power, efficiency (paper and reference-code variants),
 //!   summary statistics and least-squares slopes; pure functions.
 //! - [`report`]: metric tables and figures from a results database.
@@ -33,10 +35,12 @@ pub mod config;
 pub mod control;
 pub mod launch;
 pub mod locality;
+pub mod merge;
 pub mod metrics;
 pub mod output;
 pub mod plot;
 pub mod report;
+pub mod shard;
 pub mod store;
 pub mod trial;
 pub mod view;

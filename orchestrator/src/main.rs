@@ -19,7 +19,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
 mod campaign_cli;
-use campaign_cli::{CampaignArgs, ExportArgs, ReportArgs};
+use campaign_cli::{CampaignArgs, ExportArgs, MergeArgs, ReportArgs};
 
 #[derive(Parser)]
 #[command(name = "geese", version, about = "Online evolution of resilient swarm behaviours (BeTr-GEESE)")]
@@ -47,6 +47,9 @@ enum Cmd {
     /// Run a campaign file (conditions × tasks × seeds) into a results database;
     /// re-running it resumes where it stopped.
     Campaign(CampaignArgs),
+    /// Combine the databases of a campaign's shards (geese campaign --shard I/N) into
+    /// one results database, read by report and export as if run unsharded.
+    Merge(MergeArgs),
     /// Print metric tables and draw figures from a results database.
     Report(ReportArgs),
     /// Export a results database to CSV files.
@@ -738,6 +741,7 @@ fn main() -> Result<()> {
         Cmd::BenchNet(a) => geese_orchestrator::bench_net::bench_net_cmd(a),
         Cmd::Router(a) => geese_orchestrator::launch::router_cmd(a),
         Cmd::Campaign(a) => campaign_cli::campaign_cmd(a),
+        Cmd::Merge(a) => campaign_cli::merge_cmd(a),
         Cmd::Report(a) => campaign_cli::report_cmd(a),
         Cmd::Export(a) => campaign_cli::export_cmd(a),
         Cmd::Locality(a) => locality_cmd(a),

@@ -11,10 +11,12 @@
 //! first, unversioned databases) lacks `trials.stage_wall_seconds` and the
 //! `learning_steps` table: [`Store::create`] adds them (the trials stored before keep
 //! NULL there), [`Store::open`] adds them too when the file is writable and otherwise
-//! reads the database as it is.
+//! reads the database as it is. Version 1 lacks `sessions.shard` (the shard an
+//! invocation ran, `geese campaign --shard`), added the same way.
 use crate::campaign::{Campaign, CampaignOutcome};
 use crate::metrics::Outcome;
 use crate::output::versions;
+use crate::shard::Shard;
 use crate::trial::TrialSummary;
 use geese_proto::StepReport;
 use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
@@ -33,6 +35,7 @@ CREATE TABLE IF NOT EXISTS sessions (
     command       TEXT NOT NULL,
     versions      TEXT NOT NULL,
     campaign_digest TEXT NOT NULL,
+    shard         TEXT,
     done          INTEGER,
     failed        INTEGER,
     skipped       INTEGER,
@@ -96,8 +99,9 @@ CREATE TABLE IF NOT EXISTS learning_steps (
 ";
 
 /// Version of the schema this code writes (SQLite `user_version`): 1 added
-/// `trials.stage_wall_seconds` and `learning_steps`.
-pub const SCHEMA_VERSION: i32 = 1;
+/// `trials.stage_wall_seconds` and `learning_steps`, 2 `sessions.shard` (so that the
+/// sessions of different shards stay apart when `geese merge` combines them).
+pub const SCHEMA_VERSION: i32 = 2;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -112,9 +116,24 @@ pub enum StoreError {
          configuration than the campaign file now gives; use another --db, or restore the file"
     )]
     ConfigChanged { path: PathBuf, condition: String, task: String, seed: u64 },
+    #[error("results database {path} holds {stored}, not {wanted}: use another --db")]
+    OtherShard { path: PathBuf, stored: String, wanted: String },
+    #[error(
+        "results database {path} is a shard of the campaign resolved as {stored}, but it now resolves as \
+         {wanted} (other seeds, steps, agents or grammar?): run the shards of one campaign with one \
+         campaign file and the same options, or use another --db"
+    )]
+    ShardOfOtherCampaign { path: PathBuf, stored: String, wanted: String },
     #[error("cannot write {path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
 }
+
+/// Meta key of the digest of the resolved campaign ([`Campaign::resolved_digest`]).
+pub const META_RESOLVED_DIGEST: &str = "campaign_resolved_digest";
+/// Meta key of the shard (`I/N`) a database holds; absent for the whole campaign.
+pub const META_SHARD: &str = "shard";
+/// Meta key of the number of trials of the whole campaign (all shards).
+pub const META_TRIALS_PLANNED: &str = "trials_planned";
 
 /// Key and configuration of a trial, known before it runs.
 #[derive(Clone, Debug, PartialEq)]
@@ -196,7 +215,8 @@ impl StoredTrial {
 }
 
 pub struct Store {
-    conn: Connection,
+    /// Crate-visible for [`crate::merge`], which writes a whole merge in one transaction.
+    pub(crate) conn: Connection,
     path: PathBuf,
     /// The trials table has `stage_wall_seconds` (false: a read-only version-0 file).
     has_stage_wall: bool,
@@ -233,13 +253,20 @@ impl Store {
     /// a current one), in one transaction.
     fn migrate(&self) -> rusqlite::Result<()> {
         let version: i32 = self.conn.query_row("PRAGMA user_version", [], |r| r.get(0))?;
-        if version >= SCHEMA_VERSION && self.column_exists("trials", "stage_wall_seconds")? {
+        let added = [("trials", "stage_wall_seconds", "REAL"), ("sessions", "shard", "TEXT")];
+        let mut missing = Vec::new();
+        for (table, column, kind) in added {
+            if !self.column_exists(table, column)? {
+                missing.push(format!("ALTER TABLE {table} ADD COLUMN {column} {kind}"));
+            }
+        }
+        if version >= SCHEMA_VERSION && missing.is_empty() {
             return Ok(());
         }
         self.conn.execute_batch("BEGIN IMMEDIATE")?;
         let r = (|| {
-            if !self.column_exists("trials", "stage_wall_seconds")? {
-                self.conn.execute_batch("ALTER TABLE trials ADD COLUMN stage_wall_seconds REAL")?;
+            for alter in &missing {
+                self.conn.execute_batch(alter)?;
             }
             self.conn.execute_batch(SCHEMA_V1)?;
             self.conn.pragma_update(None, "user_version", SCHEMA_VERSION)
@@ -304,9 +331,34 @@ impl Store {
 
     /// Record the campaign's manifest and start a session (one `geese campaign` call).
     pub fn begin_session(&mut self, c: &Campaign) -> Result<i64, StoreError> {
+        self.begin_session_in(c, None)
+    }
+
+    /// [`Store::begin_session`] of one shard of the campaign (`None`: all of it). A
+    /// database holds one shard, or the unsharded campaign, for good: resuming it as
+    /// another is refused. A shard's database is also refused when the campaign now
+    /// resolves differently (other seeds, steps, grammar): its trials were chosen by the
+    /// old campaign's partition, so the merged campaign would have gaps or strays.
+    pub fn begin_session_in(&mut self, c: &Campaign, shard: Option<Shard>) -> Result<i64, StoreError> {
+        let resolved = c.resolved_digest();
         if let Some(stored) = self.meta("name")? {
             if stored != c.name {
                 return Err(StoreError::OtherCampaign { path: self.path.clone(), stored, wanted: c.name.clone() });
+            }
+            let stored = self.meta(META_SHARD)?.filter(|s| !s.is_empty());
+            let wanted = shard.map(|s| s.to_string());
+            if stored != wanted {
+                let name = |s: Option<String>| s.map_or_else(|| "the whole campaign".into(), |s| format!("shard {s}"));
+                return Err(StoreError::OtherShard {
+                    path: self.path.clone(),
+                    stored: name(stored),
+                    wanted: name(wanted),
+                });
+            }
+            if let (Some(_), Some(stored)) = (shard, self.meta(META_RESOLVED_DIGEST)?) {
+                if stored != resolved {
+                    return Err(StoreError::ShardOfOtherCampaign { path: self.path.clone(), stored, wanted: resolved });
+                }
             }
         }
         let versions = serde_json::to_string(&versions()).unwrap_or_default();
@@ -336,6 +388,8 @@ impl Store {
                 "each stream seeded with proto::seed::derive(trial seed, owner, purpose) into ChaCha8".into(),
             ),
             ("versions", versions.clone()),
+            (META_RESOLVED_DIGEST, resolved),
+            (META_TRIALS_PLANNED, c.plan().len().to_string()),
         ];
         let path = self.path.clone();
         let tx = self.conn.transaction().map_err(|source| StoreError::Sql { path, source })?;
@@ -346,6 +400,13 @@ impl Store {
             )
             .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         }
+        if let Some(shard) = shard {
+            tx.execute(
+                "INSERT INTO meta (key, value) VALUES (?1, ?2) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                params![META_SHARD, shard.to_string()],
+            )
+            .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
+        }
         tx.execute(
             "INSERT OR IGNORE INTO meta (key, value) VALUES ('created_unix', ?1)",
             params![now_unix().to_string()],
@@ -353,8 +414,8 @@ impl Store {
         .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         let command = std::env::args().collect::<Vec<_>>().join(" ");
         tx.execute(
-            "INSERT INTO sessions (started_unix, command, versions, campaign_digest) VALUES (?1, ?2, ?3, ?4)",
-            params![now_unix(), command, versions, c.digest()],
+            "INSERT INTO sessions (started_unix, command, versions, campaign_digest, shard) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![now_unix(), command, versions, c.digest(), shard.map(|s| s.to_string())],
         )
         .map_err(|source| StoreError::Sql { path: self.path.clone(), source })?;
         let id = tx.last_insert_rowid();
@@ -741,8 +802,8 @@ mod tests {
 
     /// A database as the first, unversioned schema wrote it, with one finished trial.
     fn version_0_database(path: &Path) {
-        let v0 = SCHEMA.replace("    stage_wall_seconds REAL,\n", "");
-        assert_ne!(v0, SCHEMA);
+        let v0 = SCHEMA.replace("    stage_wall_seconds REAL,\n", "").replace("    shard         TEXT,\n", "");
+        assert_eq!(v0.len(), SCHEMA.len() - "    stage_wall_seconds REAL,\n    shard         TEXT,\n".len());
         let conn = Connection::open(path).unwrap();
         conn.execute_batch(&v0).unwrap();
         conn.execute_batch(
@@ -798,6 +859,27 @@ mod tests {
         assert!(s.has_stage_wall && s.has_learning);
         assert_eq!(s.schema_version().unwrap(), SCHEMA_VERSION);
         assert_eq!(s.trials().unwrap()[0].stage_wall_seconds, None);
+        drop(s);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_version_1_database_gets_the_session_shard() {
+        let dir = scratch("v1");
+        let db = dir.join("v1.sqlite");
+        let conn = Connection::open(&db).unwrap();
+        conn.execute_batch(&SCHEMA.replace("    shard         TEXT,\n", "")).unwrap();
+        conn.execute_batch(SCHEMA_V1).unwrap();
+        conn.pragma_update(None, "user_version", 1).unwrap();
+        conn.execute_batch(
+            "INSERT INTO sessions (started_unix, command, versions, campaign_digest) VALUES (0, 'geese', '{}', 'd')",
+        )
+        .unwrap();
+        drop(conn);
+        let s = Store::open(&db).unwrap();
+        assert_eq!(s.schema_version().unwrap(), SCHEMA_VERSION);
+        assert!(s.column_exists("sessions", "shard").unwrap());
+        assert_eq!(s.sessions().unwrap().len(), 1);
         drop(s);
         let _ = std::fs::remove_dir_all(&dir);
     }

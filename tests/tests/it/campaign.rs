@@ -31,7 +31,7 @@ obstacles_at = [100, 300]
 "#;
 
 pub(crate) fn quiet() -> RunOptions {
-    RunOptions { jobs: 2, retry_failed: false, quiet: true }
+    RunOptions { jobs: 2, quiet: true, ..RunOptions::default() }
 }
 
 type Key = (String, String, u64);
