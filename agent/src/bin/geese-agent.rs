@@ -357,7 +357,7 @@ fn absorb(host: &mut Host, ev: Event) {
 fn reply_detail(host: &Host, q: zenoh::query::Query) {
     use zenoh::Wait;
     let key = q.key_expr().as_str();
-    let id = key.split('/').rev().nth(1).and_then(|c| AgentRange::parse(c)).filter(|r| r.len() == 1).map(|r| r.first);
+    let id = key.split('/').rev().nth(1).and_then(AgentRange::parse).filter(|r| r.len() == 1).map(|r| r.first);
     let Some(detail) = id.and_then(|id| host.detail(id)) else { return };
     match geese_proto::encode(&detail) {
         Ok(bytes) => {
