@@ -221,7 +221,10 @@ pub fn merge_cmd(a: MergeArgs) -> Result<()> {
         println!("shards not merged yet: {}", o.missing_shards.join(" "));
     }
     for p in &o.unfinished {
-        println!("note: the last invocation of {} did not finish (still running, or stopped): resume it and merge again", p.display());
+        println!(
+            "note: the last invocation of {} did not finish (still running, or stopped): resume it and merge again",
+            p.display()
+        );
     }
     if o.versions_differ {
         println!("note: the databases were written by different geese versions (see their manifests)");

@@ -354,7 +354,12 @@ impl<'a> Merger<'a> {
         let wall = at("wall_seconds");
         let find = format!(
             "SELECT id, wall_seconds FROM sessions WHERE {}",
-            SESSION_IDENTITY.iter().enumerate().map(|(i, c)| format!("{c} IS ?{}", i + 1)).collect::<Vec<_>>().join(" AND ")
+            SESSION_IDENTITY
+                .iter()
+                .enumerate()
+                .map(|(i, c)| format!("{c} IS ?{}", i + 1))
+                .collect::<Vec<_>>()
+                .join(" AND ")
         );
         let insert = format!(
             "INSERT INTO sessions ({cols}) VALUES ({})",
@@ -362,7 +367,12 @@ impl<'a> Merger<'a> {
         );
         let update = format!(
             "UPDATE sessions SET {} WHERE id = ?{}",
-            self.session_cols.iter().enumerate().map(|(i, c)| format!("{c} = ?{}", i + 1)).collect::<Vec<_>>().join(", "),
+            self.session_cols
+                .iter()
+                .enumerate()
+                .map(|(i, c)| format!("{c} = ?{}", i + 1))
+                .collect::<Vec<_>>()
+                .join(", "),
             n + 1
         );
         let mut map = HashMap::new();
@@ -394,7 +404,10 @@ impl<'a> Merger<'a> {
                     id
                 }
                 None => {
-                    sql(self.out, self.tx.prepare_cached(&insert).and_then(|mut st| st.execute(params_from_iter(&row[1..]))))?;
+                    sql(
+                        self.out,
+                        self.tx.prepare_cached(&insert).and_then(|mut st| st.execute(params_from_iter(&row[1..]))),
+                    )?;
                     self.tx.last_insert_rowid()
                 }
             };
@@ -421,8 +434,10 @@ impl<'a> Merger<'a> {
         let results: Vec<usize> = (0..n).filter(|&i| !NOT_RESULTS.contains(&self.trial_cols[i].as_str())).collect();
         let select = format!("SELECT id, {cols} FROM trials ORDER BY id");
         let find = format!("SELECT id, {cols} FROM trials WHERE condition = ?1 AND task = ?2 AND seed = ?3");
-        let insert =
-            format!("INSERT INTO trials ({cols}) VALUES ({})", (1..=n).map(|i| format!("?{i}")).collect::<Vec<_>>().join(", "));
+        let insert = format!(
+            "INSERT INTO trials ({cols}) VALUES ({})",
+            (1..=n).map(|i| format!("?{i}")).collect::<Vec<_>>().join(", ")
+        );
         let mut st = sql(p, src.prepare(&select))?;
         let mut rows = sql(p, st.query([]))?;
         while let Some(r) = sql(p, rows.next())? {
@@ -476,8 +491,10 @@ impl<'a> Merger<'a> {
 
     /// The rows of `table` of trial `id` in `conn`, by step.
     fn rows(conn: &Connection, p: &Path, table: &str, cols: &[String], id: i64) -> Result<Vec<Vec<Value>>, MergeError> {
-        let mut st =
-            sql(p, conn.prepare_cached(&format!("SELECT {} FROM {table} WHERE trial = ?1 ORDER BY step", cols.join(", "))))?;
+        let mut st = sql(
+            p,
+            conn.prepare_cached(&format!("SELECT {} FROM {table} WHERE trial = ?1 ORDER BY step", cols.join(", "))),
+        )?;
         let n = cols.len();
         sql(p, st.query_map([id], |r| (0..n).map(|i| r.get::<_, Value>(i)).collect()).and_then(|r| r.collect()))
     }
@@ -497,8 +514,7 @@ impl<'a> Merger<'a> {
             (2..=cols.len() + 1).map(|i| format!("?{i}")).collect::<Vec<_>>().join(", ")
         );
         let mut ins = sql(self.out, self.tx.prepare_cached(&insert))?;
-        let mut st =
-            sql(p, src.prepare_cached(&format!("SELECT {} FROM {table} WHERE trial = ?1", cols.join(", "))))?;
+        let mut st = sql(p, src.prepare_cached(&format!("SELECT {} FROM {table} WHERE trial = ?1", cols.join(", "))))?;
         let mut rows = sql(p, st.query([from]))?;
         let mut values: Vec<Value> = Vec::with_capacity(cols.len() + 1);
         while let Some(r) = sql(p, rows.next())? {
@@ -677,7 +693,10 @@ mod tests {
         let out = dir.join("out.sqlite");
         merge(&out, std::slice::from_ref(&s1)).expect("merge");
         let e = merge(&out, std::slice::from_ref(&other)).expect_err("conflict").to_string();
-        assert!(e.contains("has different results in") && e.contains("other.sqlite") && e.contains("out.sqlite"), "{e}");
+        assert!(
+            e.contains("has different results in") && e.contains("other.sqlite") && e.contains("out.sqlite"),
+            "{e}"
+        );
         // Refused as a whole: the output is as it was.
         assert_eq!(finals(&out), finals(&s1));
         // A conflict between two inputs names both.

@@ -349,7 +349,11 @@ impl Store {
             let wanted = shard.map(|s| s.to_string());
             if stored != wanted {
                 let name = |s: Option<String>| s.map_or_else(|| "the whole campaign".into(), |s| format!("shard {s}"));
-                return Err(StoreError::OtherShard { path: self.path.clone(), stored: name(stored), wanted: name(wanted) });
+                return Err(StoreError::OtherShard {
+                    path: self.path.clone(),
+                    stored: name(stored),
+                    wanted: name(wanted),
+                });
             }
             if let (Some(_), Some(stored)) = (shard, self.meta(META_RESOLVED_DIGEST)?) {
                 if stored != resolved {
