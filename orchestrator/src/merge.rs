@@ -56,24 +56,43 @@ pub enum MergeError {
          with this geese to record it, or merge into a new file"
     )]
     NoDigest(PathBuf),
-    #[error(
-        "{path} is not of the same campaign: its resolved campaign digest is {digest} (campaign '{name}'), \
-         but {reference} has {reference_digest} (campaign '{reference_name}')"
-    )]
-    OtherCampaign {
-        path: PathBuf,
-        digest: String,
-        name: String,
-        reference: PathBuf,
-        reference_digest: String,
-        reference_name: String,
-    },
-    #[error("trial '{condition}' task {task} seed {seed} has different results in {path} and in {other} ({what})")]
-    Conflict { path: PathBuf, other: PathBuf, condition: String, task: String, seed: i64, what: String },
+    #[error("{0}")]
+    OtherCampaign(Box<Mismatch>),
+    /// `trial` reads `'<condition>' task <task> seed <seed>`.
+    #[error("trial {trial} has different results in {path} and in {other} ({what})")]
+    Conflict { path: PathBuf, other: PathBuf, trial: String, what: String },
     #[error("{path}: {source}")]
     Sql { path: PathBuf, source: rusqlite::Error },
     #[error(transparent)]
     Store(#[from] StoreError),
+}
+
+/// A database of another campaign than the reference (the output's, or the first
+/// input's); boxed in [`MergeError`] to keep the error small.
+#[derive(Debug)]
+pub struct Mismatch {
+    pub path: PathBuf,
+    pub digest: String,
+    pub name: String,
+    pub reference: PathBuf,
+    pub reference_digest: String,
+    pub reference_name: String,
+}
+
+impl std::fmt::Display for Mismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} is not of the same campaign: its resolved campaign digest is {} (campaign '{}'), but {} has {} \
+             (campaign '{}')",
+            self.path.display(),
+            self.digest,
+            self.name,
+            self.reference.display(),
+            self.reference_digest,
+            self.reference_name
+        )
+    }
 }
 
 /// A checked input (or existing output) database.
@@ -208,14 +227,14 @@ pub fn merge(out: &Path, inputs: &[PathBuf]) -> Result<MergeOutcome, MergeError>
     let reference = existing.as_ref().unwrap_or(&checked[0]);
     for i in &checked {
         if i.digest != reference.digest {
-            return Err(MergeError::OtherCampaign {
+            return Err(MergeError::OtherCampaign(Box::new(Mismatch {
                 path: i.path.clone(),
                 digest: i.digest.clone(),
                 name: i.name.clone(),
                 reference: reference.path.clone(),
                 reference_digest: reference.digest.clone(),
                 reference_name: reference.name.clone(),
-            });
+            })));
         }
     }
     let mut outcome = MergeOutcome {
@@ -442,11 +461,16 @@ impl<'a> Merger<'a> {
         let mut rows = sql(p, st.query([]))?;
         while let Some(r) = sql(p, rows.next())? {
             let mut row: Vec<Value> = sql(p, (0..=n).map(|i| r.get::<_, Value>(i)).collect())?;
-            let Value::Integer(src_id) = row[0] else { continue };
-            let mut row = row.split_off(1);
-            let (condition, task, seed) = match (&row[ci], &row[ti], &row[si]) {
-                (Value::Text(c), Value::Text(t), Value::Integer(s)) => (c.clone(), t.clone(), *s),
-                _ => continue,
+            let id = row.remove(0);
+            // Never skip a trial silently: a row without its key is an error.
+            let (src_id, condition, task, seed) = match (&id, &row[ci], &row[ti], &row[si]) {
+                (Value::Integer(id), Value::Text(c), Value::Text(t), Value::Integer(s)) => {
+                    (*id, c.clone(), t.clone(), *s)
+                }
+                _ => {
+                    let why = format!("its trial row {id:?} lacks its condition, task or seed");
+                    return Err(MergeError::NotCampaign { path: p.into(), why });
+                }
             };
             let done = matches!(&row[st_i], Value::Text(s) if s == "done");
             let existing: Option<Vec<Value>> = sql(
@@ -458,7 +482,9 @@ impl<'a> Merger<'a> {
             )?;
             let key = (condition, task, seed);
             if let Some(mut ex) = existing {
-                let Value::Integer(out_id) = ex[0] else { continue };
+                let Value::Integer(out_id) = ex[0] else {
+                    return Err(MergeError::NotCampaign { path: self.out.into(), why: "a trial row has no id".into() });
+                };
                 let ex = ex.split_off(1);
                 let ex_done = matches!(&ex[st_i], Value::Text(s) if s == "done");
                 if !done || ex_done {
@@ -544,9 +570,7 @@ impl<'a> Merger<'a> {
         let differs = |what: String| MergeError::Conflict {
             path: p.into(),
             other: self.source.get(key).cloned().unwrap_or_else(|| self.out.into()),
-            condition: key.0.clone(),
-            task: key.1.clone(),
-            seed: key.2,
+            trial: format!("'{}' task {} seed {}", key.0, key.1, key.2),
             what,
         };
         if let Some(&i) = results.iter().find(|&&i| !same(&row[i], &ex[i])) {
@@ -733,7 +757,7 @@ mod tests {
         assert!(e.contains("notes.txt is not a campaign database: not an SQLite database"), "{e}");
         let foreign = dir.join("foreign.sqlite");
         Connection::open(&foreign).and_then(|c| c.execute_batch("CREATE TABLE t (x)")).expect("foreign");
-        let e = merge(&out, &[foreign.clone()]).expect_err("foreign").to_string();
+        let e = merge(&out, std::slice::from_ref(&foreign)).expect_err("foreign").to_string();
         assert!(e.contains("foreign.sqlite is not a campaign database: it has no `meta` table"), "{e}");
         let e = merge(&foreign, std::slice::from_ref(&s1)).expect_err("foreign output").to_string();
         assert!(e.contains("foreign.sqlite is not a campaign database"), "{e}");

@@ -668,3 +668,231 @@ fn algorithms_on_x_get_one_curve_and_one_box_each() {
     let ms: Vec<f64> = r.groups.iter().map(|g| g.ms_per_step.expect("ms per step").median).collect();
     assert!(ms.len() == 2 && ms.iter().all(|&v| v > 0.0), "{ms:?}");
 }
+
+/// 2 agent counts × 2 tasks × 2 seeds, plus GEESE-BT learning runs tested at two
+/// sampling sizes × 2 tasks × 2 seeds: 16 small trials, 4 of the learning runs shared
+/// by two trials each.
+const SHARDED: &str = r#"
+name = "sharded"
+tasks = ["foraging", "nest"]
+seeds = 2
+x = "condition"
+step_stride = 3
+[base]
+steps = 60
+[base.world]
+agents = 8
+[[grid]]
+agents = [6, 12]
+[[grid]]
+algorithm = "geese-bt"
+sample = [0.5, 1.0]
+"#;
+
+/// Fields of an RFC 4180 CSV text (quoted fields may hold commas, quotes, newlines).
+fn parse_csv(text: &str) -> Vec<Vec<String>> {
+    let (mut rows, mut row, mut field) = (Vec::new(), Vec::new(), String::new());
+    let mut chars = text.chars().peekable();
+    let mut quoted = false;
+    while let Some(c) = chars.next() {
+        match (quoted, c) {
+            (true, '"') if chars.peek() == Some(&'"') => {
+                field.push('"');
+                chars.next();
+            }
+            (true, '"') => quoted = false,
+            (true, c) => field.push(c),
+            (false, '"') => quoted = true,
+            (false, ',') => row.push(std::mem::take(&mut field)),
+            (false, '\n') => {
+                row.push(std::mem::take(&mut field));
+                rows.push(std::mem::take(&mut row));
+            }
+            (false, c) => field.push(c),
+        }
+    }
+    rows
+}
+
+/// A CSV export's rows without the columns named in `drop`, sorted: comparable between
+/// databases whose row ids and wall-clock times differ.
+fn csv_without(path: &Path, drop: &[&str]) -> (Vec<String>, Vec<Vec<String>>) {
+    let mut rows = parse_csv(&std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())));
+    let head = rows.remove(0);
+    let keep: Vec<usize> = (0..head.len()).filter(|&i| !drop.contains(&head[i].as_str())).collect();
+    let pick = |r: &Vec<String>| keep.iter().map(|&i| r[i].clone()).collect::<Vec<_>>();
+    let mut body: Vec<Vec<String>> = rows.iter().map(pick).collect();
+    body.sort();
+    (pick(&head), body)
+}
+
+/// Run `bin` (the `geese` binary) in `dir`.
+fn geese(bin: &Path, dir: &Path, args: &[&str]) -> std::process::Output {
+    Command::new(bin).current_dir(dir).args(args).output().expect("run geese")
+}
+
+#[test]
+fn four_concurrent_shards_merge_into_the_unsharded_campaign() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    std::fs::write(d.join("sharded.toml"), SHARDED).expect("write campaign");
+    let bin = geese_tests::bin_path("geese-orchestrator", "geese");
+    // The whole campaign and its four shards, five processes at once.
+    let spawn = |args: &[&str]| {
+        Command::new(&bin)
+            .current_dir(d)
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn geese campaign")
+    };
+    let mut runs = vec![spawn(&["campaign", "-q", "-j", "1", "--db", "whole.sqlite", "sharded.toml"])];
+    for i in 1..=4 {
+        runs.push(spawn(&["campaign", "-q", "-j", "1", "--shard", &format!("{i}/4"), "sharded.toml"]));
+    }
+    for r in runs {
+        let out = r.wait_with_output().expect("wait");
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    }
+    // Default names; every trial in exactly one shard.
+    let shards: Vec<String> = (1..=4).map(|i| format!("results/sharded.shard-{i}-of-4.sqlite")).collect();
+    let counts: Vec<usize> =
+        shards.iter().map(|s| Store::open(&d.join(s)).and_then(|s| s.trials()).expect("shard db").len()).collect();
+    assert_eq!(counts.iter().sum::<usize>(), 16, "{counts:?}");
+    assert!(counts.iter().all(|&n| n > 0), "{counts:?}");
+
+    // Running a shard again resumes it: nothing to run.
+    let out = geese(&bin, d, &["campaign", "-q", "--shard", "2/4", "sharded.toml"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains(&format!("{} trials planned: {} already stored, 0 run now", counts[1], counts[1])),
+        "{stdout}"
+    );
+
+    let mut args = vec!["merge", "merged.sqlite"];
+    args.extend(shards.iter().map(String::as_str));
+    let out = geese(&bin, d, &args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("16 trial(s) added, 0 already there"), "{stdout}");
+    assert!(stdout.contains("merged.sqlite now holds 16 trial(s) of the campaign's 16: 16 done, 0 failed"), "{stdout}");
+    assert!(stdout.contains("shards merged: 1/4 2/4 3/4 4/4") && !stdout.contains("not merged yet"), "{stdout}");
+    // Merging again (a shard twice, too) changes nothing.
+    let out = geese(&bin, d, &["merge", "merged.sqlite", &shards[0], &shards[0], &shards[3]]);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("0 trial(s) added"), "{out:?}");
+
+    // Export reads the merged database as the unsharded one: the same trials, step rows
+    // and learning-step rows, wall-clock columns and row ids aside.
+    for db in ["whole", "merged"] {
+        let out = geese(&bin, d, &["export", &format!("{db}.sqlite"), "--out", db]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    }
+    let not_results = ["id", "session", "wall_seconds", "stage_wall_seconds", "finished_unix"];
+    for (file, drop) in
+        [("trials.csv", &not_results[..]), ("steps.csv", &["trial"][..]), ("learning_steps.csv", &["trial"][..])]
+    {
+        let (whole, merged) =
+            (csv_without(&d.join("whole").join(file), drop), csv_without(&d.join("merged").join(file), drop));
+        assert!(!whole.1.is_empty(), "{file} is empty");
+        assert_eq!(whole, merged, "{file}");
+    }
+    let (head, trials) = csv_without(&d.join("merged/trials.csv"), &not_results);
+    assert_eq!(trials.len(), 16);
+    assert!(head.contains(&"final_task_pct".to_string()) && head.contains(&"config".to_string()), "{head:?}");
+    let manifest = |db: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(d.join(db).join("manifest.json")).expect("manifest"))
+            .expect("json")
+    };
+    let (whole, merged) = (manifest("whole"), manifest("merged"));
+    assert_eq!(merged["name"], "sharded");
+    assert_eq!(merged["campaign_resolved_digest"], whole["campaign_resolved_digest"]);
+    assert_eq!(merged["merged_shards"], "1/4,2/4,3/4,4/4");
+    assert!(merged.get("shard").is_none(), "the merged database is no shard");
+    let sessions = std::fs::read_to_string(d.join("merged/sessions.csv")).expect("sessions.csv");
+    assert_eq!(sessions.lines().count(), 1 + 5, "four shard invocations and the resumed one");
+
+    // The report reads it too.
+    let out = geese(&bin, d, &["report", "merged.sqlite", "--no-plots"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// 1 condition × 1 task × 4 seeds of 5 agents × 30 steps.
+const TINY: &str = r#"
+name = "tiny"
+tasks = ["foraging"]
+seeds = 4
+[base]
+steps = 30
+[base.world]
+agents = 5
+[[grid]]
+ip = 0.9
+"#;
+
+#[test]
+fn merge_refuses_other_campaigns_and_files_and_shard_specs_must_be_i_of_n() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    std::fs::write(d.join("tiny.toml"), TINY).expect("write campaign");
+    let bin = geese_tests::bin_path("geese-orchestrator", "geese");
+    let ok = |out: std::process::Output| {
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    };
+    let fails = |out: std::process::Output, says: &[&str]| {
+        assert!(!out.status.success(), "succeeded: {}", String::from_utf8_lossy(&out.stdout));
+        let err = String::from_utf8_lossy(&out.stderr);
+        for s in says {
+            assert!(err.contains(s), "expected '{s}' in: {err}");
+        }
+    };
+    ok(geese(&bin, d, &["campaign", "-q", "--shard", "1/2", "--db", "s1.sqlite", "tiny.toml"]));
+    // Shard 2 of the campaign run with other steps: another resolved campaign.
+    ok(geese(&bin, d, &["campaign", "-q", "--shard", "2/2", "--steps", "40", "--db", "s2.sqlite", "tiny.toml"]));
+    let digest = |db: &str| Store::open(&d.join(db)).and_then(|s| s.meta("campaign_resolved_digest")).expect("meta");
+    let (d1, d2) = (digest("s1.sqlite").expect("digest"), digest("s2.sqlite").expect("digest"));
+    assert_ne!(d1, d2);
+    fails(
+        geese(&bin, d, &["merge", "out.sqlite", "s1.sqlite", "s2.sqlite"]),
+        &["s2.sqlite is not of the same campaign", &d2, "s1.sqlite", &d1],
+    );
+    // A shard database takes no other shard.
+    fails(
+        geese(&bin, d, &["campaign", "-q", "--shard", "2/2", "--db", "s1.sqlite", "tiny.toml"]),
+        &["s1.sqlite holds shard 1/2, not shard 2/2"],
+    );
+
+    // Files that are no campaign database.
+    let conn = rusqlite::Connection::open(d.join("other.sqlite")).expect("sqlite");
+    conn.execute_batch("CREATE TABLE things (x INTEGER); INSERT INTO things VALUES (1);").expect("table");
+    drop(conn);
+    fails(
+        geese(&bin, d, &["merge", "out.sqlite", "s1.sqlite", "other.sqlite"]),
+        &["other.sqlite is not a campaign database: it has no `meta` table"],
+    );
+    std::fs::write(d.join("notes.sqlite"), "these are notes, not a database; long enough for a header .....")
+        .expect("write");
+    fails(geese(&bin, d, &["merge", "out.sqlite", "notes.sqlite"]), &["notes.sqlite is not a campaign database"]);
+    fails(geese(&bin, d, &["merge", "other.sqlite", "s1.sqlite"]), &["other.sqlite is not a campaign database"]);
+    fails(geese(&bin, d, &["merge", "out.sqlite"]), &["<SHARDS>"]);
+    // Nothing was merged by the refused merges.
+    assert!(Store::open(&d.join("out.sqlite")).and_then(|s| s.trials()).map(|t| t.is_empty()).unwrap_or(true));
+
+    for (spec, says) in [
+        ("5/4", "I = 5 is greater than N = 4"),
+        ("0/0", "N must be at least 1"),
+        ("0/4", "I counts from 1"),
+        ("a/b", "I 'a' is not a whole number"),
+        ("3", "expected I/N"),
+    ] {
+        let quoted = format!("shard '{spec}'");
+        fails(
+            geese(&bin, d, &["campaign", "-q", "--shard", spec, "--db", "bad.sqlite", "tiny.toml"]),
+            &[&quoted, says],
+        );
+    }
+    assert!(!d.join("bad.sqlite").exists());
+    let help = geese(&bin, d, &["campaign", "--help"]);
+    assert!(String::from_utf8_lossy(&help.stdout).contains("I counts from 1"), "{help:?}");
+}
