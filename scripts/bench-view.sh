@@ -4,10 +4,10 @@
 # (interleaved, ROUNDS times each). In-process (100 agents) and distributed (10 agent
 # processes × 100 agents).
 #
-#   scripts/bench-view.sh [ROUNDS]      (needs target/release or $CARGO_TARGET_DIR built)
+#   scripts/bench-view.sh [ROUNDS]   (the release build, or GEESE=path/to/geese)
 set -euo pipefail
 ROUNDS="${1:-3}"
-B="${CARGO_TARGET_DIR:-$(dirname "$0")/../target}/release/geese"
+B="${GEESE:-${CARGO_TARGET_DIR:-$(dirname "$0")/../target}/release/geese}"
 OUT="$(mktemp -d)"
 trap 'rm -rf "$OUT"' EXIT
 
