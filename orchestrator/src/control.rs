@@ -240,5 +240,6 @@ mod tests {
         let rate = |rate| message(&ControlCmd::StepRate { rate }, 7, &arena());
         assert_eq!(rate(12.5).unwrap(), ("view", Control::StepRate(12.5)));
         assert!(rate(-1.0).unwrap_err().to_string().starts_with("step-rate: StepRate -1"));
+        assert!(rate(1e-300).unwrap_err().to_string().contains("is neither 0 nor in [0.01, 10000]"));
     }
 }

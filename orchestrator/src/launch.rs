@@ -512,7 +512,7 @@ async fn run_net_async(
                 Control::Schedule { .. } => log.lock().unwrap_or_else(|e| e.into_inner()).push(c),
                 Control::Pause => pace.paused = true,
                 Control::Resume => pace.paused = false,
-                Control::StepRate(r) if r.is_finite() && r >= 0.0 => pace.rate = r,
+                Control::StepRate(r) if geese_proto::limits::check_step_rate(r).is_ok() => pace.rate = r,
                 _ => return,
             }
             pace.at = Instant::now();

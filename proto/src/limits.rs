@@ -62,13 +62,20 @@ pub fn check_unit(field: &'static str, value: f64) -> Result<(), InvalidCommand>
     }
 }
 
-/// A step-rate limit must be a finite number of steps per second in
-/// [0, [`crate::view::MAX_STEP_RATE`]] (0: no limit).
+/// A step-rate limit must be 0 (no limit) or a number of steps per second in
+/// [[`crate::view::MIN_STEP_RATE`], [`crate::view::MAX_STEP_RATE`]]: a tiny positive
+/// rate would make the wait between two steps longer than any clock holds (geese-fuzz
+/// found a 1e-300 that panicked the world server).
 pub fn check_step_rate(r: f64) -> Result<(), InvalidCommand> {
-    if r.is_finite() && (0.0..=crate::view::MAX_STEP_RATE).contains(&r) {
+    use crate::view::{MAX_STEP_RATE, MIN_STEP_RATE};
+    if r == 0.0 || (MIN_STEP_RATE..=MAX_STEP_RATE).contains(&r) {
         Ok(())
     } else {
-        Err(InvalidCommand::new("StepRate", r, format!("is not in [0, {}] steps/s", crate::view::MAX_STEP_RATE)))
+        Err(InvalidCommand::new(
+            "StepRate",
+            r,
+            format!("is neither 0 nor in [{MIN_STEP_RATE}, {MAX_STEP_RATE}] steps/s"),
+        ))
     }
 }
 

@@ -378,17 +378,18 @@ pub struct StepReport {
 pub enum Control {
     Start,
     Stop,
+    /// Apply at the start of `at_step` (world side; propagated in percepts).
+    Schedule {
+        at_step: u64,
+        change: Perturbation,
+    },
+    // New variants go last: postcard encodes a variant by its index.
     /// Hold the run between two steps until `Resume` (the live viewer's pause).
     Pause,
     Resume,
     /// Make at most this many steps per second (0 = as fast as possible), to watch a
     /// run at human speed.
     StepRate(f64),
-    /// Apply at the start of `at_step` (world side; propagated in percepts).
-    Schedule {
-        at_step: u64,
-        change: Perturbation,
-    },
 }
 
 /// A run-time change of the world or the swarm (REFERENCE §8.4, §8.6). Checked by
@@ -401,6 +402,12 @@ pub enum Perturbation {
         count: u32,
         radius: i32,
     },
+    SetIp(f64),
+    SetLateralTransfer(bool),
+    SetGeneLoss(f64),
+    /// Kill this fraction of the live agents (lowest-drawn ids, seeded).
+    KillFraction(f64),
+    // New variants go last: postcard encodes a variant by its index.
     /// Add one obstacle of `radius` centred at (x, y) (the live viewer's click); it is
     /// not placed where it would cover the hub or another object.
     AddObstacleAt {
@@ -408,9 +415,4 @@ pub enum Perturbation {
         y: i32,
         radius: i32,
     },
-    SetIp(f64),
-    SetLateralTransfer(bool),
-    SetGeneLoss(f64),
-    /// Kill this fraction of the live agents (lowest-drawn ids, seeded).
-    KillFraction(f64),
 }

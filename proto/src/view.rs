@@ -14,6 +14,9 @@ pub const MAX_FRAMES_PER_SECOND: f64 = 10.0;
 /// The fastest step-rate limit a viewer may ask for (steps per second); 0 means none.
 pub const MAX_STEP_RATE: f64 = 10_000.0;
 
+/// The slowest step-rate limit (steps per second): one step every 100 s.
+pub const MIN_STEP_RATE: f64 = 0.01;
+
 /// The world at the end of one step, for the viewer.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 pub struct ViewFrame {

@@ -33,7 +33,8 @@ impl Pace {
         match *c {
             Control::Pause => self.paused = true,
             Control::Resume => self.paused = false,
-            Control::StepRate(r) => self.rate = r,
+            // Checked again here: a rate outside the limits would overflow the clock.
+            Control::StepRate(r) if geese_proto::limits::check_step_rate(r).is_ok() => self.rate = r,
             _ => return false,
         }
         self.owed = true;
@@ -102,6 +103,8 @@ mod tests {
         assert!(p.on_control(&Control::Resume));
         assert!(p.step_at(t0).is_some());
         assert!(!p.on_control(&Control::Stop), "not a pace command");
+        assert!(!p.on_control(&Control::StepRate(1e-300)), "refused: no clock holds 1e300 s");
+        assert_eq!(p.rate(), 4.0);
     }
 
     #[test]
