@@ -826,6 +826,8 @@ mod tests {
         assert!(err(&format!("{head}bogus = 1\n[[grid]]\nip = [0.9]\n")).contains("bogus"));
         assert!(err(&format!("{head}[base]\nbogus = 1\n[[grid]]\nip = [0.9]\n")).contains("bogus"));
         assert!(err(&format!("{head}[[grid]]\nipp = [0.9]\n")).contains("grid[0].ipp"));
+        let e = err(&format!("{head}[base]\nlocality = \"1:100\"\n[[grid]]\nip = [0.9]\n"));
+        assert!(e.contains("base.locality: \"1:100\""), "{e}");
         assert!(err(&format!("{head}[[grid]]\nip = []\n")).contains("grid[0].ip: is an empty list"));
         assert!(err(&format!("{head}[[grid]]\nip = [0.5, 1.5]\n")).contains("grid[0].ip[1]"));
         assert!(err(head).contains("grid: no conditions"));

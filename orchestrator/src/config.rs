@@ -163,7 +163,7 @@ impl RunConfig {
         if w.to > self.steps {
             return Err(invalid(
                 "locality",
-                format!("{text:?} ends after the run's last step, {} (steps = {})", self.steps, self.steps),
+                format!("{text:?} ends after the run's last step (steps = {})", self.steps),
             ));
         }
         Ok(Some(w))

@@ -367,6 +367,10 @@ struct BenchArgs {
     /// Instead of the trial, time one genetic step and one mapping (forge.bnf).
     #[arg(long)]
     micro: bool,
+    /// Count the locality map over steps FROM:TO, as `geese run --locality` (to time its
+    /// cost).
+    #[arg(long, value_name = "FROM:TO")]
+    locality: Option<String>,
 }
 
 fn parse_genome(s: &str) -> Result<Vec<u32>> {
@@ -683,7 +687,8 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
         }
         return Ok(());
     }
-    println!("geese bench: {} learning agents, {} steps, one thread", a.agents, a.steps);
+    let counting = a.locality.as_deref().map(|w| format!(", locality map over steps {w}")).unwrap_or_default();
+    println!("geese bench: {} learning agents, {} steps, one thread{counting}", a.agents, a.steps);
     let mut rates = Vec::new();
     let (mut seconds, mut genetic) = (0.0, 0u64);
     for r in 0..a.repeat {
@@ -691,6 +696,7 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
         cfg.world.agents = a.agents;
         cfg.steps = a.steps;
         cfg.seed = a.seed + r as u64;
+        cfg.locality = a.locality.clone();
         cfg.world.task = match a.task {
             TaskArg::Foraging => Task::Foraging,
             TaskArg::Nest => Task::Nest,

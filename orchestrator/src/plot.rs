@@ -710,6 +710,9 @@ fn draw_locality<DB: DrawingBackend>(
             .bold_line_style(BLACK.mix(0.08))
             .draw()
             .map_err(s)?;
+        // The arena's edge (the mesh draws only the left and bottom axes).
+        let edge = [(xr.start, yr.start), (xr.end, yr.end)];
+        chart.draw_series(std::iter::once(Rectangle::new(edge, BLACK.mix(0.6).stroke_width(1)))).map_err(s)?;
         for b in boxes {
             let (x1, y1, x2, y2) = b.cells;
             let corners = [(f64::from(x1), f64::from(y1)), (f64::from(x2), f64::from(y2))];

@@ -33,15 +33,13 @@ pub const CSV_HEADER: &str = "x,y,class,count";
 /// Why a window or a locality file is not acceptable.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum LocalityError {
-    #[error("locality {0:?}: expected FROM:TO, two step numbers such as 1:3000")]
+    #[error("{0:?}: expected FROM:TO, two step numbers such as 1:3000")]
     Form(String),
-    #[error("locality {value:?}: {part} {text:?} is not a step number")]
+    #[error("{value:?}: {part} {text:?} is not a step number")]
     NotANumber { value: String, part: &'static str, text: String },
-    #[error(
-        "locality {0:?}: steps count from 1 (step 1 is the first step of the run); the paper's steps 0–3000 are 1:3000"
-    )]
+    #[error("{0:?}: steps count from 1 (step 1 is the first step of the run); the paper's steps 0–3000 are 1:3000")]
     Zero(String),
-    #[error("locality {value:?}: FROM {from} comes after TO {to}")]
+    #[error("{value:?}: FROM {from} comes after TO {to}")]
     Reversed { value: String, from: u64, to: u64 },
     #[error("line {line}: {reason}")]
     Csv { line: usize, reason: String },

@@ -933,6 +933,30 @@ mod tests {
     }
 
     #[test]
+    fn the_locality_map_counts_the_agents_live_after_each_step_of_its_window() {
+        let t0 = Instant::now();
+        let mut s = Server::new(spec(4, 3), t0).unwrap();
+        s.record_locality("2:3".parse().unwrap());
+        let (a, b) = (range(0, 2), range(2, 2));
+        join(&mut s, a, true);
+        join(&mut s, b, true);
+        for step in 1..=2 {
+            published(&s.next(t0));
+            answer(&mut s, a, step);
+            answer(&mut s, b, step);
+            report(s.next(t0));
+        }
+        // Process b goes away after step 2: its agents die and count no more.
+        join(&mut s, b, false);
+        published(&s.next(t0));
+        answer(&mut s, a, 3);
+        report(s.next(t0));
+        let l = s.world().locality().expect("counting");
+        assert_eq!((l.steps(), l.agent_steps()), (2, 4 + 2));
+        assert_eq!(l.counts().iter().map(|c| c.count).sum::<u64>(), 6);
+    }
+
+    #[test]
     fn run_info_tells_a_joining_process_the_next_step_and_every_body_cell() {
         let t0 = Instant::now();
         let mut s = Server::new(spec(3, 2), t0).unwrap();

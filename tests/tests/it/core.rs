@@ -238,6 +238,59 @@ fn cli_run_writes_csv_and_manifest() {
     assert!(m["versions"]["git_revision"].is_string());
 }
 
+/// Issue 19: `--locality 5:20` counts every live agent once after each of steps 5–20,
+/// both included; bad windows are errors naming the value; `geese locality` draws it.
+#[test]
+fn cli_run_locality_counts_live_agents_times_steps_in_the_window() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let out = dir.path().join("r");
+    let o = out.to_str().expect("utf8");
+    let (ok, stdout, err) =
+        geese(&["run", "--agents", "10", "--steps", "30", "--seed", "4", "--locality", "5:20", "-q", "--out", o]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("locality map"), "{stdout}");
+    let text = std::fs::read_to_string(out.join("locality.csv")).expect("locality.csv");
+    let counts = geese_world::locality::parse_csv(&text).expect("well-formed");
+    assert!(text.starts_with("x,y,class,count\n"));
+    assert_eq!(counts.iter().map(|c| c.count).sum::<u64>(), 10 * 16);
+    assert!(counts.windows(2).all(|w| (w[0].x, w[0].y, w[0].class) < (w[1].x, w[1].y, w[1].class)));
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).expect("manifest")).expect("json");
+    let l = &m["locality"];
+    assert_eq!((l["window"].as_str(), l["from"].as_u64(), l["to"].as_u64()), (Some("5:20"), Some(5), Some(20)));
+    assert_eq!(l["steps_counted"], 16);
+    assert_eq!(m["config"]["locality"], "5:20");
+    assert!(l["landmarks"].as_array().expect("landmarks").iter().any(|x| x["kind"] == "Hub"));
+    for bad in ["5:3", "a:b", "10", "1:31", "0:5"] {
+        let (ok, _, err) = geese(&["run", "--agents", "2", "--steps", "30", "--locality", bad, "-q", "--out", o]);
+        assert!(!ok && err.contains(&format!("locality: {bad:?}")), "{bad}: {err}");
+    }
+    let (ok, stdout, err) = geese(&["locality", o]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("agent-steps by class"), "{stdout}");
+    for ext in ["png", "svg"] {
+        assert!(std::fs::metadata(out.join(format!("locality.{ext}"))).expect("figure").len() > 1000);
+    }
+    let (ok, _, err) = geese(&["locality", dir.path().join("nothing").to_str().expect("utf8")]);
+    assert!(!ok && err.contains("nothing"), "{err}");
+}
+
+/// The shipped locality world (configs/locality.toml) is the reference's (REFERENCE §1.4).
+#[test]
+fn the_shipped_locality_config_is_the_reference_locality_world() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/locality.toml");
+    let spec = RunConfig::from_file(&path).expect("parses").validate().expect("valid");
+    let c = &spec.config;
+    assert_eq!((c.world.agents, c.ip, c.learner.st, c.learner.stagnation_explore), (100, 0.85, 10, 0));
+    assert_eq!(spec.grammar_name, "betr-foraging-avoid");
+    assert_eq!(spec.locality.map(|w| (w.from, w.to)), Some((1, 3000)));
+    let w = geese_world::World::new(c.world.clone(), c.seed).expect("world");
+    let at = |k| w.objects().filter(|o| o.info.kind == k).map(|o| (o.info.pos.x, o.info.pos.y)).collect::<Vec<_>>();
+    assert_eq!(at(geese_proto::ObjectKind::Obstacles), [(-30, -30), (30, -30), (30, 30), (-15, 0)]);
+    assert_eq!(at(geese_proto::ObjectKind::Sites), [(-30, 30)]);
+    assert!(w.bodies().iter().all(|b| (b.pos.x, b.pos.y) == (0, 0)));
+}
+
 /// Issue 16, bad input: an unknown algorithm, a population of the wrong grammar or task,
 /// an empty sample, a GeneDict key that is no action class, a phenotype that does not
 /// build — each a clear error naming the value, never a panic.

@@ -487,11 +487,18 @@ fn geese_run_processes_writes_the_same_csv_and_leaves_no_orphans() {
             .expect("run geese");
         assert!(status.success());
     };
-    run(&[], "inproc");
-    run(&["--processes", "4"], "net");
+    // With the locality map (issue 19): the world server counts it as the in-process
+    // world does.
+    run(&["--locality", "10:140"], "inproc");
+    run(&["--processes", "4", "--locality", "10:140"], "net");
     let a = std::fs::read_to_string(dir.path().join("inproc/steps.csv")).expect("csv");
     let b = std::fs::read_to_string(dir.path().join("net/steps.csv")).expect("csv");
     assert_eq!(a, b);
+    let a = std::fs::read_to_string(dir.path().join("inproc/locality.csv")).expect("locality.csv");
+    let b = std::fs::read_to_string(dir.path().join("net/locality.csv")).expect("locality.csv");
+    assert_eq!(a, b);
+    let counted: u64 = geese_world::locality::parse_csv(&b).expect("csv").iter().map(|c| c.count).sum();
+    assert_eq!(counted, 12 * 131);
     let m = std::fs::read_to_string(dir.path().join("net/manifest.json")).expect("manifest");
     assert!(m.contains("\"transport\": \"zenoh\""));
     assert!(std::fs::read_to_string(dir.path().join("net/net.csv")).expect("net.csv").lines().count() == 151);
