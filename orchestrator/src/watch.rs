@@ -23,6 +23,8 @@ pub struct Watch {
     pace: Pace,
     url: String,
     stop: bool,
+    /// A frame has been published (the page server holds one for a page that comes).
+    shown: bool,
     _shutdown: tokio::sync::oneshot::Sender<()>,
     // Last: dropping the runtime ends the server after the shutdown signal.
     _rt: tokio::runtime::Runtime,
@@ -45,7 +47,16 @@ impl Watch {
         let (bound, _task) = rt.block_on(view::serve(addr, feed.clone(), Backend::InProcess(tx), async {
             let _ = done.await;
         }))?;
-        Ok(Watch { feed, commands, pace, url: format!("http://{bound}/"), stop: false, _shutdown: shutdown, _rt: rt })
+        Ok(Watch {
+            feed,
+            commands,
+            pace,
+            url: format!("http://{bound}/"),
+            stop: false,
+            shown: false,
+            _shutdown: shutdown,
+            _rt: rt,
+        })
     }
 
     pub fn url(&self) -> &str {
@@ -93,7 +104,7 @@ impl Watch {
     }
 
     fn frame(&mut self, trial: &Trial, rep: &StepReport, steps: u64, now: Instant) {
-        if self.feed.pages() == 0 && !self.feed.latest().starts_with("null") {
+        if self.feed.pages() == 0 && self.shown {
             // Nobody watches: no frame is built (a page that connects gets the last one,
             // and the next within a frame interval).
             self.pace.owe_frame();
@@ -101,6 +112,7 @@ impl Watch {
         }
         if self.pace.frame_due(now) {
             self.feed.publish(&geese_world::frame::frame(&trial.world, rep, steps, &self.pace));
+            self.shown = true;
         }
     }
 

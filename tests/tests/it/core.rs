@@ -111,16 +111,13 @@ fn cli_grammar_map_matches_golden_vectors() {
     );
 }
 
+/// The genome of REFERENCE §4.5's worked tree.
+const WORKED_GENOME: &str =
+    "1027,25,1038,773,1037,793,953,372,1146,1579,473,816,219,562,786,606,897,1539,1964,164,1807,896";
+
 #[test]
 fn cli_grammar_tree_prints_the_worked_tree() {
-    let (ok, out, err) = geese(&[
-        "grammar",
-        "tree",
-        "--grammar",
-        "betr-foraging-avoid",
-        "--genome",
-        "1027,25,1038,773,1037,793,953,372,1146,1579,473,816,219,562,786,606,897,1539,1964,164,1807,896",
-    ]);
+    let (ok, out, err) = geese(&["grammar", "tree", "--grammar", "betr-foraging-avoid", "--genome", WORKED_GENOME]);
     assert!(ok, "{err}");
     let expected = "Selector\n  Selector\n    Sequence\n      IsCarrying[Food] (PostCnd)\n    Sequence\n      Sequence\n        Inverter\n          IsVisitedBefore[Sites] (PreCnd)\n        MoveAway[Hub] (Act)\n";
     assert_eq!(out, expected);
@@ -174,16 +171,8 @@ fn cli_grammar_tree_draws_pictures_of_population_members() {
     assert!(ok, "{err}");
     assert_eq!(svg.matches("<g>").count(), text.lines().count(), "one group per node");
 
-    let (ok, dot, err) = geese(&[
-        "grammar",
-        "tree",
-        "--grammar",
-        "betr-foraging-avoid",
-        "--genome",
-        "1027,25,1038,773,1037,793,953,372,1146,1579,473,816,219,562,786,606,897,1539,1964,164,1807,896",
-        "--format",
-        "dot",
-    ]);
+    let (ok, dot, err) =
+        geese(&["grammar", "tree", "--grammar", "betr-foraging-avoid", "--genome", WORKED_GENOME, "--format", "dot"]);
     assert!(ok, "{err}");
     assert!(dot.starts_with("digraph bt {") && dot.contains(r#"n8 [label="MoveAway[Hub] (Act)""#), "{dot}");
 
