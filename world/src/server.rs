@@ -389,10 +389,7 @@ impl Server {
                         None => {
                             // Paused: what the control plane scheduled applies now, as it
                             // would between two steps, and the viewer sees it at once.
-                            if !self.scheduled.is_empty() {
-                                for (at, change) in std::mem::take(&mut self.scheduled) {
-                                    self.world.schedule(at, change);
-                                }
+                            if self.hand_over_scheduled() {
                                 self.pace.owe_frame();
                             }
                             if let Some(out) = self.frame_if_due(now) {
@@ -451,6 +448,16 @@ impl Server {
         Next::Finished { messages, outcome }
     }
 
+    /// Give the world what the control plane scheduled (between two steps: a change
+    /// whose step has passed applies at once). True if there was any.
+    fn hand_over_scheduled(&mut self) -> bool {
+        let any = !self.scheduled.is_empty();
+        for (at, change) in std::mem::take(&mut self.scheduled) {
+            self.world.schedule(at, change);
+        }
+        any
+    }
+
     /// Steps 1–2: open step `world.step()` and build what goes out.
     fn begin_step(&mut self, now: Instant) -> Result<Released, ServerError> {
         let step = self.world.step();
@@ -461,9 +468,7 @@ impl Server {
                 self.world.revive(id);
             }
         }
-        for (at, change) in std::mem::take(&mut self.scheduled) {
-            self.world.schedule(at, change);
-        }
+        self.hand_over_scheduled();
         self.counters = NetCounters { hostile: std::mem::take(&mut self.rejected_between), ..NetCounters::default() };
         // Who reads what this step: per-cell topics while some process reads cells one by
         // one; a message of their own for every hosting process.
