@@ -21,7 +21,8 @@
 //! agent, as many as `1:3000` counts.
 //!
 //! Counters are `u64`: at most 10⁷ steps × 10⁶ agents ([`geese_proto::limits`]) = 10¹³
-//! agent-steps, far from 2⁶⁴. The reference's 8-bit counters wrap at 128 (NOTES.md).
+//! agent-steps, far from 2⁶⁴. The reference keeps 8-bit counts per step, exact only
+//! while at most 127 agents share a location in one step (NOTES.md).
 use crate::world::Body;
 use geese_proto::{BehaviourClass, Pos};
 use std::collections::HashMap;

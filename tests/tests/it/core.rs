@@ -250,10 +250,10 @@ fn cli_run_locality_counts_live_agents_times_steps_in_the_window() {
     assert_eq!(l["steps_counted"], 16);
     assert_eq!(m["config"]["locality"], "5:20");
     assert!(l["landmarks"].as_array().expect("landmarks").iter().any(|x| x["kind"] == "Hub"));
-    for bad in ["5:3", "a:b", "10", "1:31", "0:5"] {
-        let (ok, _, err) = geese(&["run", "--agents", "2", "--steps", "30", "--locality", bad, "-q", "--out", o]);
-        assert!(!ok && err.contains(&format!("locality: {bad:?}")), "{bad}: {err}");
-    }
+    // One bad window through the CLI (each `geese` call costs a cargo check of the
+    // binary); config::tests names every kind.
+    let (ok, _, err) = geese(&["run", "--agents", "2", "--steps", "30", "--locality", "5:3", "-q", "--out", o]);
+    assert!(!ok && err.contains("locality: \"5:3\": FROM 5 comes after TO 3"), "{err}");
     let (ok, stdout, err) = geese(&["locality", o]);
     assert!(ok, "{err}");
     assert!(stdout.contains("agent-steps by class"), "{stdout}");
