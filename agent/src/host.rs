@@ -162,6 +162,7 @@ pub struct Host {
     present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
+    world_left: bool,
     bare_tick: Option<u64>,
     /// A tick came: check that the cells of own agents are subscribed.
     tick_seen: bool,
@@ -260,6 +261,7 @@ impl Host {
             present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
+            world_left: false,
             bare_tick: None,
             tick_seen: false,
             pending: None,
@@ -296,6 +298,12 @@ impl Host {
     /// Whether the process stopped.
     pub fn stopped(&self) -> bool {
         self.stop
+    }
+
+    /// Did it stop because the world's presence token went (the world ended, or the
+    /// link to it was lost), rather than on a stop command or a signal?
+    pub fn world_left(&self) -> bool {
+        self.world_left
     }
 
     /// The cells subscribed now (a process reading cells one by one).
@@ -488,8 +496,9 @@ impl Host {
             Input::Hostile => self.counters.hostile += 1,
             Input::Presence { alive, key } => match keys::parse(&self.info.spec.run, key) {
                 Parsed::WorldPresence if !alive => {
-                    tracing::info!("agents {}: the world left; exiting", self.range);
+                    tracing::info!("agents {}: the world left", self.range);
                     self.stop = true;
+                    self.world_left = true;
                 }
                 Parsed::AgentsPresence { agents } => keys::tally(&mut self.present, agents, alive),
                 _ => {}

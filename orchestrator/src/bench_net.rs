@@ -9,7 +9,7 @@
 //! runs each learning scenario N times and adds the minimum, median and maximum rate. It
 //! prints figures; it asserts nothing.
 use crate::config::RunConfig;
-use crate::launch::{run_net, NetOptions, NetOutcome};
+use crate::launch::{run_net, NetOptions, NetOutcome, Security};
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 
@@ -40,8 +40,38 @@ pub struct BenchNetArgs {
     /// How agent processes read cells: auto, cells or all; a comma-separated list is cycled over the processes.
     #[arg(long)]
     pub subscribe: Option<String>,
+    /// Logins and access control: on (what `geese run --processes` does), off
+    /// (`--insecure`) or both, interleaved run by run.
+    #[arg(long, value_enum, default_value = "on")]
+    pub security: BenchSecurity,
     #[command(flatten)]
     pub zenoh: geese_proto::zenoh_bus::CommonArgs,
+}
+
+/// The security modes a benchmark measures.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BenchSecurity {
+    On,
+    Off,
+    Both,
+}
+
+impl BenchSecurity {
+    fn modes(self) -> Vec<Security> {
+        match self {
+            BenchSecurity::On => vec![Security::PerRun],
+            BenchSecurity::Off => vec![Security::Off],
+            BenchSecurity::Both => vec![Security::PerRun, Security::Off],
+        }
+    }
+}
+
+fn mode_name(s: &Security) -> &'static str {
+    if *s == Security::Off {
+        "security off"
+    } else {
+        "security on"
+    }
 }
 
 /// One scenario: processes × agents per process, learning steps.
@@ -71,7 +101,7 @@ pub fn parse_scenarios(s: &str, default_steps: u64) -> Result<Vec<Scenario>> {
     Ok(v)
 }
 
-fn run(args: &BenchNetArgs, sc: Scenario, bare: bool) -> Result<NetOutcome> {
+fn run(args: &BenchNetArgs, sc: Scenario, bare: bool, security: &Security) -> Result<NetOutcome> {
     let mut cfg = RunConfig::default();
     cfg.world.agents = sc.processes * sc.per_process;
     cfg.steps = if bare { args.bare_steps } else { sc.steps };
@@ -85,6 +115,7 @@ fn run(args: &BenchNetArgs, sc: Scenario, bare: bool) -> Result<NetOutcome> {
         bare,
         subscribe: args.subscribe.clone(),
         quiet_children: true,
+        security: security.clone(),
         ..NetOptions::default()
     };
     Ok(run_net(&spec, &opts, |_, _| {})?)
@@ -109,49 +140,66 @@ fn mib(kib: f64) -> f64 {
 
 pub fn bench_net_cmd(args: BenchNetArgs) -> Result<()> {
     let scenarios = parse_scenarios(&args.scenarios, args.steps)?;
+    let modes = args.security.modes();
     println!(
-        "geese bench-net: {} scenario(s) on {} cores; bare = tick out, empty replies back; learning = foraging, seed {}",
+        "geese bench-net: {} scenario(s) on {} cores; bare = tick out, empty replies back; learning = foraging, seed {}; {}",
         scenarios.len(),
         std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
-        args.seed
+        args.seed,
+        modes.iter().map(|m| format!("{} = {}", mode_name(m), m.describe())).collect::<Vec<_>>().join(", ")
     );
     for sc in scenarios {
         let agents = sc.processes * sc.per_process;
         let label = format!("{} process(es) x {} agent(s) = {agents} agents", sc.processes, sc.per_process);
-        let bare = run(&args, sc, true).with_context(|| format!("{label}: bare lock-step"))?;
-        let bare_rate = bare.reports as f64 / bare.run_seconds.max(1e-9);
-        println!(
-            "{label}: bare lock-step {} steps in {:.2} s = {:.1} steps/s (wall with start-up {:.1} s)",
-            bare.reports, bare.run_seconds, bare_rate, bare.wall_seconds
-        );
+        let mut bare_rates = Vec::new();
+        for m in &modes {
+            let bare = run(&args, sc, true, m).with_context(|| format!("{label}: bare lock-step"))?;
+            let bare_rate = bare.reports as f64 / bare.run_seconds.max(1e-9);
+            println!(
+                "{label}, {}: bare lock-step {} steps in {:.2} s = {:.1} steps/s (wall with start-up {:.1} s)",
+                mode_name(m),
+                bare.reports,
+                bare.run_seconds,
+                bare_rate,
+                bare.wall_seconds
+            );
+            bare_rates.push(bare_rate);
+        }
         if args.bare_only {
             continue;
         }
-        let mut rates = Vec::new();
+        // Runs of the modes alternate, so a drift of the machine's speed hits both alike.
+        let mut rates = vec![Vec::new(); modes.len()];
         let mut last = None;
         for r in 1..=args.repeat {
-            let learn = run(&args, sc, false).with_context(|| format!("{label}: learning run"))?;
-            let rate = learn.reports as f64 / learn.run_seconds.max(1e-9);
-            let of = if args.repeat > 1 { format!(" (run {r} of {})", args.repeat) } else { String::new() };
-            println!(
-                "{label}: learning {} steps in {:.2} s = {:.1} steps/s ({:.0} agent-steps/s), {:.3} of bare; \
-                 wall with start-up {:.1} s; final task {:.2} %{of}",
-                learn.reports,
-                learn.run_seconds,
-                rate,
-                rate * agents as f64,
-                rate / bare_rate.max(1e-9),
-                learn.wall_seconds,
-                learn.summary.final_task_pct
-            );
-            rates.push(rate);
-            last = Some(learn);
+            for (k, m) in modes.iter().enumerate() {
+                let learn = run(&args, sc, false, m).with_context(|| format!("{label}: learning run"))?;
+                let rate = learn.reports as f64 / learn.run_seconds.max(1e-9);
+                let of = if args.repeat > 1 { format!(" (run {r} of {})", args.repeat) } else { String::new() };
+                println!(
+                    "{label}, {}: learning {} steps in {:.2} s = {:.1} steps/s ({:.0} agent-steps/s), {:.3} of bare; \
+                     wall with start-up {:.1} s; final task {:.2} %{of}",
+                    mode_name(m),
+                    learn.reports,
+                    learn.run_seconds,
+                    rate,
+                    rate * agents as f64,
+                    rate / bare_rates[k].max(1e-9),
+                    learn.wall_seconds,
+                    learn.summary.final_task_pct
+                );
+                rates[k].push(rate);
+                last = Some(learn);
+            }
         }
-        if let Some((min, median, max)) = spread(&rates).filter(|_| rates.len() > 1) {
-            println!(
-                "{label}: learning over {} runs: min {min:.1}, median {median:.1}, max {max:.1} steps/s",
-                rates.len()
-            );
+        for (k, m) in modes.iter().enumerate() {
+            if let Some((min, median, max)) = spread(&rates[k]).filter(|_| rates[k].len() > 1) {
+                println!(
+                    "{label}, {}: learning over {} runs: min {min:.1}, median {median:.1}, max {max:.1} steps/s",
+                    mode_name(m),
+                    rates[k].len()
+                );
+            }
         }
         let Some(learn) = last else { continue };
         let rss = &learn.agent_rss_kib;

@@ -154,6 +154,17 @@ pub fn control_cmd(args: ControlArgs) -> Result<()> {
     if let ControlCmd::Perturb { change, .. } = &args.cmd {
         change.perturbation()?;
     }
+    // The router drops control messages of anyone else without telling the sender: say
+    // so here rather than report a command sent that nobody will receive.
+    if let Some(p) = &args.zenoh.credentials {
+        let user = geese_proto::security::Credential::read(p)?.user;
+        if user != geese_proto::security::OPERATOR {
+            bail!(
+                "--credentials {}: logs in as {user:?}; only the operator credential may use the control plane",
+                p.display()
+            );
+        }
+    }
     let rt = zenoh_bus::runtime(1)?;
     rt.block_on(async move {
         let session = zenoh_bus::open(&args.zenoh, Role::Client).await?;

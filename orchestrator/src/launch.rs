@@ -10,8 +10,9 @@
 use crate::config::RunSpec;
 use crate::output::{write_locality, write_manifest, StepCsv};
 use crate::trial::TrialSummary;
-use geese_proto::keys::{self, Parsed};
+use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{Deadlines, LossRates, NetReport, NetRunSpec, ReportMsg};
+use geese_proto::security::{self, Layout, Secrets};
 use geese_proto::zenoh_bus::{self, CommonArgs, Role};
 use geese_proto::{decode, encode, Control};
 use std::io::Write;
@@ -95,6 +96,32 @@ pub struct NetOptions {
     pub view: Option<u16>,
     /// A step-rate limit asked of the world from the start (the viewer's control).
     pub step_rate: Option<f64>,
+    /// Logins and access control (DESIGN.md §7).
+    pub security: Security,
+}
+
+/// How a distributed run is secured.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub enum Security {
+    /// Fresh credentials and an access-control list for this run only, in a private
+    /// temporary directory removed when the run ends (the default).
+    #[default]
+    PerRun,
+    /// Credentials and list made beforehand by `geese secure init` (multi-host runs).
+    Dir(PathBuf),
+    /// No logins, no access control (`--insecure`, for benchmarks).
+    Off,
+}
+
+impl Security {
+    /// What the manifest and the benchmarks say of it.
+    pub fn describe(&self) -> &'static str {
+        match self {
+            Security::PerRun => "usrpwd+acl (per-run credentials)",
+            Security::Dir(_) => "usrpwd+acl (geese secure init)",
+            Security::Off => "none (--insecure)",
+        }
+    }
 }
 
 impl Default for NetOptions {
@@ -115,6 +142,7 @@ impl Default for NetOptions {
             quiet_children: false,
             view: None,
             step_rate: None,
+            security: Security::PerRun,
         }
     }
 }
@@ -133,6 +161,8 @@ pub struct Swarm {
     bin_dir: PathBuf,
     run: String,
     client: CommonArgs,
+    /// The run's credentials (none when it runs `--insecure`).
+    secrets: Option<std::sync::Arc<Secrets>>,
     subscribe: Option<String>,
     quiet: bool,
     pub world_pid: Option<u32>,
@@ -147,14 +177,11 @@ pub struct Swarm {
 impl Swarm {
     fn agent_command(&self, i: usize, first: u32, count: u32) -> Command {
         let mut c = Command::new(self.bin_dir.join("geese-agent"));
-        c.args(self.client.to_args()).args([
-            "--run",
-            &self.run,
-            "--id",
-            &first.to_string(),
-            "--agents",
-            &count.to_string(),
-        ]);
+        let mut client = self.client.clone();
+        if let (Some(s), Some(r)) = (&self.secrets, AgentRange::new(first, count)) {
+            client.credentials = Some(s.credential(&security::agents_user(r)));
+        }
+        c.args(client.to_args()).args(["--run", &self.run, "--id", &first.to_string(), "--agents", &count.to_string()]);
         if let Some(s) = &self.subscribe {
             let modes: Vec<&str> = s.split(',').collect();
             c.args(["--subscribe", modes[i % modes.len()]]);
@@ -203,9 +230,20 @@ impl Swarm {
         &self.run
     }
 
-    /// Zenoh arguments a client of this run connects with.
+    /// Zenoh arguments a client of this run connects with (no login).
     pub fn client_args(&self) -> &CommonArgs {
         &self.client
+    }
+
+    /// The credential file of `user` in this run (none when it runs `--insecure`).
+    pub fn credential(&self, user: &str) -> Option<PathBuf> {
+        self.secrets.as_ref().map(|s| s.credential(user))
+    }
+
+    /// Zenoh arguments of a client logging in as `user` (as [`Swarm::client_args`] when
+    /// the run is not secured).
+    pub fn client_args_as(&self, user: &str) -> CommonArgs {
+        CommonArgs { credentials: self.credential(user), ..self.client.clone() }
     }
 
     /// PIDs of every process launched so far (world and agents, killed ones included).
@@ -353,6 +391,43 @@ impl crate::campaign::TrialRunner for OverZenoh {
     }
 }
 
+/// The credentials of a run of `agents` agents in processes of `per` under `opts`: made
+/// fresh, opened from `geese secure init`'s directory, or none.
+fn run_secrets(opts: &NetOptions, run: &str, agents: u32, per: u32) -> Result<Option<Secrets>, LaunchError> {
+    let sec = |e: security::SecurityError| LaunchError::Invalid(e.to_string());
+    match &opts.security {
+        Security::Off => Ok(None),
+        Security::PerRun if opts.processes == 0 => Err(LaunchError::Invalid(
+            "--processes 0: agent processes started elsewhere need credentials; make them with `geese secure init` and pass --secrets DIR (or run --insecure)".into(),
+        )),
+        Security::PerRun if opts.zenoh.router.is_some() => Err(LaunchError::Invalid(
+            "--router: an external router checks logins against its own files; make them with `geese secure init` and pass --secrets DIR to both (or run --insecure)".into(),
+        )),
+        Security::PerRun => Secrets::temporary(&Layout::even(run, agents, per)).map(Some).map_err(sec),
+        Security::Dir(dir) => {
+            let s = Secrets::open(dir).map_err(sec)?;
+            if s.layout().run != run {
+                return Err(LaunchError::Invalid(format!(
+                    "--secrets {}: made for run {:?}, not {run:?} (pass --run-name {0:?}, or make new ones)",
+                    dir.display(),
+                    s.layout().run
+                )));
+            }
+            if opts.processes > 0 {
+                let local = Layout::even(run, agents, per).agents;
+                if let Some(r) = local.iter().find(|r| !s.layout().agents.contains(r)) {
+                    return Err(LaunchError::Invalid(format!(
+                        "--secrets {}: no credential for an agent process of agents {r} (it was made for {})",
+                        dir.display(),
+                        s.layout().agents.iter().map(|r| r.to_string()).collect::<Vec<_>>().join(", ")
+                    )));
+                }
+            }
+            Ok(Some(s))
+        }
+    }
+}
+
 /// The world server's specification of `spec` under `opts`.
 pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSpec, LaunchError> {
     let c = &spec.config;
@@ -412,7 +487,14 @@ async fn run_net_async(
 ) -> Result<NetOutcome, LaunchError> {
     let launched = Instant::now();
     let bin_dir = find_bin_dir(opts.bin_dir.as_deref())?;
-    let run = opts.run.clone().unwrap_or_else(unique_run_name);
+    let run = match (&opts.run, &opts.security) {
+        (Some(r), _) => r.clone(),
+        // Secrets made for a run name that run.
+        (None, Security::Dir(d)) => {
+            Secrets::open(d).map_err(|e| LaunchError::Invalid(e.to_string()))?.layout().run.clone()
+        }
+        (None, _) => unique_run_name(),
+    };
     if !keys::valid_run_name(&run) {
         return Err(LaunchError::Invalid(format!("run name {run:?}")));
     }
@@ -425,6 +507,7 @@ async fn run_net_async(
         Some(k) => k,
         None => n.div_ceil(opts.processes.max(1)),
     };
+    let secrets = run_secrets(opts, &run, n, per)?.map(std::sync::Arc::new);
     let nspec = net_spec(spec, opts, &run)?;
     let spec_path = std::env::temp_dir().join(format!("geese-{run}.json"));
     std::fs::write(&spec_path, serde_json::to_vec_pretty(&nspec).map_err(|e| LaunchError::Invalid(e.to_string()))?)
@@ -446,8 +529,19 @@ async fn run_net_async(
     if let (Some(w), Some(path)) = (spec.locality, &locality_file) {
         world.arg("--locality").arg(w.to_string()).arg("--locality-out").arg(path);
     }
+    // The world is the router its clients log in to (it checks their logins and
+    // enforces the access-control list) or, with --router, one more client.
+    let mut world_zenoh = opts.zenoh.clone();
+    if let Some(s) = &secrets {
+        if opts.zenoh.router.is_none() {
+            world_zenoh.users = Some(s.users());
+            world_zenoh.acl = Some(s.acl());
+        } else {
+            world_zenoh.credentials = Some(s.credential(security::WORLD));
+        }
+    }
     world
-        .args(opts.zenoh.to_args())
+        .args(world_zenoh.to_args())
         .arg("--spec")
         .arg(&spec_path)
         .stdin(Stdio::null())
@@ -485,8 +579,14 @@ async fn run_net_async(
         listen: Vec::new(),
         router: opts.zenoh.router.clone(),
         cfg: opts.zenoh.cfg.clone(),
+        credentials: None,
+        users: None,
+        acl: None,
     };
-    let session = zenoh_bus::open(&client, Role::Client).await?;
+    // The launcher is the operator: it alone may use the control plane.
+    let operator =
+        CommonArgs { credentials: secrets.as_ref().map(|s| s.credential(security::OPERATOR)), ..client.clone() };
+    let session = zenoh_bus::open(&operator, Role::Client).await?;
     let (tx, mut rx) = unbounded_channel::<Ev>();
     let t = tx.clone();
     let _reports = session
@@ -521,7 +621,7 @@ async fn run_net_async(
         .map_err(zerr)?;
     let view = match opts.view {
         Some(port) => {
-            let v = crate::view::ZenohView::attach(&session, &run, port)
+            let v = crate::view::ZenohView::attach(&session, &run, port, true)
                 .await
                 .map_err(|e| LaunchError::Invalid(format!("viewer: {e}")))?;
             println!("view: {}", v.url());
@@ -551,10 +651,18 @@ async fn run_net_async(
         .map_err(zerr)?;
     let token = session.liveliness().declare_token(keys::orchestrator_presence(&run)).await.map_err(zerr)?;
 
+    if let (Some(s), false) = (&secrets, opts.quiet_children) {
+        println!(
+            "control: geese control --run {run} -e {} --credentials {} (removed when the run ends)",
+            locators.first().map(String::as_str).unwrap_or("?"),
+            s.credential(security::OPERATOR).display()
+        );
+    }
     let mut swarm = Swarm {
         bin_dir,
         run: run.clone(),
         client,
+        secrets: secrets.clone(),
         subscribe: opts.subscribe.clone(),
         quiet: opts.quiet_children,
         world_pid,
@@ -591,7 +699,8 @@ async fn run_net_async(
     let rss_at = (c.steps * 9 / 10).max(1);
     let join_patience = Duration::from_millis(opts.deadlines.join_ms as u64) + Duration::from_secs(10);
     let mut outcome: Result<(), LaunchError> = Ok(());
-    let ctrl_c = tokio::signal::ctrl_c();
+    // Ctrl-C or SIGTERM: the children go, and so do the run's secrets.
+    let ctrl_c = zenoh_bus::shutdown_signal();
     tokio::pin!(ctrl_c);
     // The world's liveliness token travels at a higher priority than its last reports:
     // once it is gone, give the reports a moment to land before concluding.
@@ -794,7 +903,7 @@ pub fn run_cli(spec: &RunSpec, opts: &NetOptions, out: &Path, quiet: bool) -> an
         let total: u64 = counts.iter().map(|c| c.count).sum();
         println!("locality map: {} ({total} agent-steps)", path.display());
     }
-    write_manifest(out, spec, "zenoh", &outcome.summary, &outcome.control_log)?;
+    write_manifest(out, spec, "zenoh", Some(opts.security.describe()), &outcome.summary, &outcome.control_log)?;
     Ok(outcome)
 }
 
@@ -842,8 +951,27 @@ pub struct NetArgs {
     /// cycled over the processes (e.g. `all,cells`: a mixed swarm).
     #[arg(long)]
     pub subscribe: Option<String>,
+    /// No logins and no access control (benchmarks; the manifest says so) [default: a
+    /// fresh credential per process and an access-control list for the run].
+    #[arg(long, conflicts_with = "secrets")]
+    pub insecure: bool,
+    /// Use the credentials and access-control list `geese secure init` made in DIR
+    /// (multi-host runs, external routers).
+    #[arg(long, value_name = "DIR")]
+    pub secrets: Option<PathBuf>,
     #[command(flatten)]
     pub zenoh: CommonArgs,
+}
+
+impl NetArgs {
+    /// The security the flags ask for.
+    pub fn security(&self) -> Security {
+        match (&self.secrets, self.insecure) {
+            (Some(d), _) => Security::Dir(d.clone()),
+            (None, true) => Security::Off,
+            (None, false) => Security::PerRun,
+        }
+    }
 }
 
 impl NetArgs {
@@ -897,6 +1025,7 @@ impl NetArgs {
             kill,
             restart_at: self.restart_at.clone(),
             subscribe: self.subscribe.clone(),
+            security: self.security(),
             ..NetOptions::default()
         }))
     }

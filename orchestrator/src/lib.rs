@@ -22,6 +22,8 @@
 //! - [`plot`]: PNG/SVG figures (learning curves, resilience scatters, box plots,
 //!   locality maps).
 //! - [`locality`]: a run's locality map read back and drawn (`geese locality`, Fig. 5).
+//! - [`secure`]: `geese secure init`, the credentials and access-control list of a run
+//!   started by hand or across hosts.
 //! - [`view`]: the live viewer's web server and page (`geese view`, `geese run --view`).
 //! - [`watch`]: an in-process run with the viewer attached.
 // Doc comments of clap arguments are also `--help` text, where `<run>` or `<db>` reads
@@ -40,6 +42,7 @@ pub mod metrics;
 pub mod output;
 pub mod plot;
 pub mod report;
+pub mod secure;
 pub mod shard;
 pub mod store;
 pub mod trial;

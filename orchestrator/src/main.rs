@@ -59,6 +59,12 @@ enum Cmd {
     Locality(LocalityArgs),
     /// Send a perturbation or stop to a running distributed world (control plane).
     Control(geese_orchestrator::control::ControlArgs),
+    /// Make the credentials and access-control list of a run whose processes are
+    /// started by hand or on several hosts (`geese run --processes N` makes its own).
+    Secure {
+        #[command(subcommand)]
+        cmd: geese_orchestrator::secure::SecureCmd,
+    },
     /// Watch a running distributed run in the browser (a read-only client of its bus;
     /// its controls go through the control plane).
     View(geese_orchestrator::view::ViewArgs),
@@ -616,7 +622,7 @@ fn in_process_run(
         let path = write_locality(out, &l.counts()).with_context(|| format!("cannot write {}", out.display()))?;
         println!("locality map: {} ({} agent-steps over {} steps)", path.display(), l.agent_steps(), l.steps());
     }
-    write_manifest(out, spec, "in-process", &summary, &[])?;
+    write_manifest(out, spec, "in-process", None, &summary, &[])?;
     println!("final task %: {:.2}", summary.final_task_pct);
     match summary.first_step_at_threshold {
         Some(s) => println!("reached {} % at step {s}", c.threshold),
@@ -736,10 +742,10 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
 static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
-        .with_writer(std::io::stderr)
-        .init();
+    // Zenoh logs a session's configuration, password included, at debug level.
+    let filter = tracing_subscriber::EnvFilter::from_default_env()
+        .add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?);
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     match Cli::parse().cmd {
         Cmd::Run(a) => run_cmd(a),
         Cmd::Grammar { cmd } => grammar_cmd(cmd),
@@ -753,5 +759,6 @@ fn main() -> Result<()> {
         Cmd::Locality(a) => locality_cmd(a),
         Cmd::Control(a) => geese_orchestrator::control::control_cmd(a),
         Cmd::View(a) => geese_orchestrator::view::view_cmd(a),
+        Cmd::Secure { cmd } => geese_orchestrator::secure::secure_cmd(cmd),
     }
 }

@@ -57,6 +57,9 @@ struct Manifest<'a> {
     grammar: &'a str,
     grammar_digest: String,
     transport: &'a str,
+    /// How a distributed run was secured (logins and access control, or none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    security: Option<&'a str>,
     config: &'a crate::config::RunConfig,
     /// Perturbations received on the control plane during the run (`geese control`).
     #[serde(skip_serializing_if = "<[_]>::is_empty")]
@@ -164,6 +167,7 @@ pub fn write_manifest(
     dir: &Path,
     spec: &RunSpec,
     transport: &str,
+    security: Option<&str>,
     summary: &TrialSummary,
     control: &[geese_proto::Control],
 ) -> std::io::Result<()> {
@@ -175,6 +179,7 @@ pub fn write_manifest(
         grammar: &spec.grammar_name,
         grammar_digest: text_digest(&spec.grammar_text),
         transport,
+        security,
         config: &spec.config,
         control,
         summary,

@@ -101,8 +101,14 @@ pub enum Backend {
     /// Into the loop of an in-process run, which takes them between two steps.
     InProcess(std::sync::mpsc::Sender<Command>),
     /// The control plane of a distributed run, and its agent processes' queryables.
-    Zenoh { session: zenoh::Session, run: String },
+    /// `control` is false for a viewer without the operator's right to the control plane
+    /// (DESIGN.md §7): its page watches only.
+    Zenoh { session: zenoh::Session, run: String, control: bool },
 }
+
+/// Why a viewer's page may not send commands.
+pub const READ_ONLY: &str =
+    "read-only: this viewer did not log in with the operator credential (geese view --credentials OPERATOR.cred)";
 
 #[derive(Debug, thiserror::Error)]
 pub enum ViewError {
@@ -114,6 +120,8 @@ pub enum ViewError {
     Invalid(String),
     #[error("zenoh: {0}")]
     Zenoh(String),
+    #[error("{READ_ONLY}")]
+    ReadOnly,
     #[error("cannot serve the viewer on {addr}: {source}")]
     Bind { addr: SocketAddr, source: std::io::Error },
 }
@@ -122,7 +130,8 @@ impl Backend {
     async fn control(&self, c: Control) -> Result<(), ViewError> {
         match self {
             Backend::InProcess(tx) => tx.send(Command::Control(c)).map_err(|_| ViewError::RunEnded),
-            Backend::Zenoh { session, run } => {
+            Backend::Zenoh { control: false, .. } => Err(ViewError::ReadOnly),
+            Backend::Zenoh { session, run, .. } => {
                 let bytes = geese_proto::encode(&c).map_err(|e| ViewError::Invalid(e.to_string()))?;
                 geese_proto::zenoh_bus::put(session, &geese_proto::keys::ctl(run, "view"), bytes)
                     .await
@@ -142,7 +151,7 @@ impl Backend {
                     _ => Err(ViewError::RunEnded),
                 }
             }
-            Backend::Zenoh { session, run } => {
+            Backend::Zenoh { session, run, .. } => {
                 let replies = session
                     .get(geese_proto::keys::agent_detail(run, id))
                     .timeout(DETAIL_TIMEOUT)
@@ -150,6 +159,10 @@ impl Backend {
                     .map_err(|e| ViewError::Zenoh(e.to_string()))?;
                 while let Ok(Ok(r)) = tokio::time::timeout(DETAIL_TIMEOUT, replies.recv_async()).await {
                     let Ok(sample) = r.result() else { continue };
+                    if !geese_proto::keys::detail_reply_holds(run, sample.key_expr().as_str(), id) {
+                        tracing::warn!("detail reply on {} for agent {id} ignored", sample.key_expr());
+                        continue;
+                    }
                     // From the network: decoded and checked, never trusted.
                     match geese_proto::decode::<AgentDetail>(&sample.payload().to_bytes()) {
                         Ok(d) if d.id == id => return Ok(d),
@@ -248,6 +261,11 @@ async fn events(
     Sse::new(stream).keep_alive(KeepAlive::default())
 }
 
+async fn rights(State(app): State<App>) -> Response {
+    let control = !matches!(app.backend, Backend::Zenoh { control: false, .. });
+    Json(serde_json::json!({ "control": control, "why": if control { "" } else { READ_ONLY } })).into_response()
+}
+
 async fn agent(State(app): State<App>, Path(id): Path<AgentId>) -> Response {
     match app.backend.detail(id).await {
         Ok(d) => Json(d).into_response(),
@@ -267,6 +285,7 @@ async fn control(State(app): State<App>, Json(cmd): Json<PageCommand>) -> Respon
     };
     match app.backend.control(c.clone()).await {
         Ok(()) => Json(serde_json::json!({ "sent": format!("{c:?}") })).into_response(),
+        Err(e @ ViewError::ReadOnly) => error(StatusCode::FORBIDDEN, e),
         Err(e) => error(StatusCode::SERVICE_UNAVAILABLE, e),
     }
 }
@@ -285,6 +304,7 @@ pub async fn serve(
         .route("/events", get(events))
         .route("/agent/{id}", get(agent))
         .route("/control", post(control))
+        .route("/rights", get(rights))
         .with_state(App { feed, backend });
     let listener = tokio::net::TcpListener::bind(addr).await.map_err(|source| ViewError::Bind { addr, source })?;
     let bound = listener.local_addr().map_err(|source| ViewError::Bind { addr, source })?;
@@ -346,7 +366,9 @@ pub struct ZenohView {
 impl ZenohView {
     /// Serve the viewer of run `run` on 127.0.0.1:`port` (0: any free port) through
     /// `session`.
-    pub async fn attach(session: &zenoh::Session, run: &str, port: u16) -> Result<ZenohView, ViewError> {
+    /// `control`: may the page send commands (the session logged in as the operator, or
+    /// the run is not secured)?
+    pub async fn attach(session: &zenoh::Session, run: &str, port: u16, control: bool) -> Result<ZenohView, ViewError> {
         let zerr = |e: zenoh::Error| ViewError::Zenoh(e.to_string());
         let feed = Arc::new(Feed::new());
         let f = feed.clone();
@@ -360,7 +382,7 @@ impl ZenohView {
             .await
             .map_err(zerr)?;
         let (shutdown, done) = oneshot::channel::<()>();
-        let backend = Backend::Zenoh { session: session.clone(), run: run.to_string() };
+        let backend = Backend::Zenoh { session: session.clone(), run: run.to_string(), control };
         let addr = SocketAddr::from(([127, 0, 0, 1], port));
         let (bound, server) = serve(addr, feed, backend, async {
             let _ = done.await;
@@ -420,7 +442,13 @@ pub fn view_cmd(args: ViewArgs) -> anyhow::Result<()> {
             })
             .await
             .map_err(|e| anyhow::anyhow!("zenoh: {e}"))?;
-        let view = ZenohView::attach(&session, &args.run, args.port).await?;
+        // The router decides what gets through; the page offers controls only to the
+        // operator (or on a run without logins).
+        let control = match &args.zenoh.credentials {
+            None => true,
+            Some(p) => geese_proto::security::Credential::read(p)?.user == geese_proto::security::OPERATOR,
+        };
+        let view = ZenohView::attach(&session, &args.run, args.port, control).await?;
         println!("view: {} (run {}; Ctrl-C to leave)", view.url(), args.run);
         tokio::select! {
             _ = gone.recv() => println!("the run's world has gone"),

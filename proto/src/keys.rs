@@ -205,10 +205,33 @@ pub fn view_frame(run: &str) -> String {
     format!("geese/{run}/view/frame")
 }
 
-/// Queried for an agent's [`crate::view::AgentDetail`]; answered by the process that
-/// hosts the agent.
+/// Queried for agent `id`'s [`crate::view::AgentDetail`]; answered by the process that
+/// hosts the agent, on [`agent_detail_reply`].
 pub fn agent_detail(run: &str, id: u32) -> String {
-    format!("geese/{run}/agent/{id}/detail")
+    format!("geese/{run}/agent/*/detail/{id}")
+}
+
+/// The queryable of the agent process speaking for `agents`: the range is in the key,
+/// so access control can let a process answer for its own agents only.
+pub fn agents_detail(run: &str, agents: AgentRange) -> String {
+    format!("geese/{run}/agent/{agents}/detail/*")
+}
+
+/// The key a reply about agent `id` comes back on from the process speaking for
+/// `agents`.
+pub fn agent_detail_reply(run: &str, agents: AgentRange, id: u32) -> String {
+    format!("geese/{run}/agent/{agents}/detail/{id}")
+}
+
+/// Does a detail reply's key name a process range holding `id`? (A receiver checks it;
+/// the access-control list makes sure the range is the replier's own.)
+pub fn detail_reply_holds(run: &str, key: &str, id: u32) -> bool {
+    let Some(rest) = key.strip_prefix(&format!("geese/{run}/agent/")) else { return false };
+    let mut parts = rest.split('/');
+    match (parts.next().and_then(AgentRange::parse), parts.next(), parts.next(), parts.next()) {
+        (Some(r), Some("detail"), Some(i), None) => r.contains(id) && i == id.to_string(),
+        _ => false,
+    }
 }
 
 /// Every liveliness token of a run.

@@ -20,6 +20,8 @@
 //! - [`view`]: the frames and agent details the live viewer shows.
 //! - `zenoh_bus` (feature `zenoh`): the Zenoh transport — session configuration, the
 //!   command-line arguments every process shares, publication helpers.
+//! - `security` (feature `zenoh`): credentials, the access-control list generated from
+//!   [`keys`], and a run's secrets directory (DESIGN.md §7).
 pub mod codec;
 pub mod geometry;
 pub mod keys;
@@ -28,6 +30,8 @@ pub mod membus;
 pub mod message;
 pub mod net;
 pub mod rules;
+#[cfg(feature = "zenoh")]
+pub mod security;
 pub mod seed;
 pub mod view;
 #[cfg(feature = "zenoh")]

@@ -10,6 +10,7 @@
 //! Every binary flattens the same [`CommonArgs`] into its command line, in the style of
 //! Zenoh's examples: `--zenoh-config FILE`, `--mode`, `-e/--connect`, `-l/--listen`,
 //! `--router`, `--cfg KEY:VALUE`.
+use crate::security;
 use std::path::PathBuf;
 use zenoh::qos::CongestionControl;
 use zenoh::{Config, Session};
@@ -25,6 +26,8 @@ pub enum BusError {
     Open(String),
     #[error("zenoh: {0}")]
     Zenoh(String),
+    #[error(transparent)]
+    Security(#[from] security::SecurityError),
 }
 
 /// Session mode.
@@ -78,6 +81,18 @@ pub struct CommonArgs {
     /// --cfg transport/unicast/max_sessions:4000
     #[arg(long = "cfg", value_name = "KEY:VALUE")]
     pub cfg: Vec<String>,
+    /// Log in with the credential in FILE (one line `user:password`, made by `geese
+    /// secure init` or by `geese run` for its own processes).
+    #[arg(long, value_name = "FILE")]
+    pub credentials: Option<PathBuf>,
+    /// Accept only logins listed in FILE (`user:password` per line): for a session that
+    /// others connect to (the world's router, `geese router`).
+    #[arg(long, value_name = "FILE")]
+    pub users: Option<PathBuf>,
+    /// Enforce the access-control list in FILE (JSON5, Zenoh's `access_control`
+    /// section; `geese secure init` writes one) on the processes connected here.
+    #[arg(long, value_name = "FILE")]
+    pub acl: Option<PathBuf>,
 }
 
 impl CommonArgs {
@@ -108,7 +123,18 @@ impl CommonArgs {
             v.push("--cfg".into());
             v.push(c.clone());
         }
+        for (flag, p) in [("--credentials", &self.credentials), ("--users", &self.users), ("--acl", &self.acl)] {
+            if let Some(p) = p {
+                v.push(flag.into());
+                v.push(p.display().to_string());
+            }
+        }
         v
+    }
+
+    /// Does this session log in or check logins?
+    pub fn secured(&self) -> bool {
+        self.credentials.is_some() || self.users.is_some() || self.acl.is_some()
     }
 
     /// The Zenoh configuration of a session of `role`.
@@ -172,6 +198,15 @@ impl CommonArgs {
             let (k, v) = pair.split_once(':').ok_or_else(|| BusError::CfgPair(pair.clone()))?;
             c.insert_json5(k, v).map_err(|e| BusError::Config(format!("--cfg {pair}: {e}")))?;
         }
+        if let Some(p) = &self.credentials {
+            security::Credential::read(p)?.apply(&mut c)?;
+        }
+        if let Some(p) = &self.users {
+            security::apply_dictionary(&mut c, p)?;
+        }
+        if let Some(p) = &self.acl {
+            security::apply_acl(&mut c, p)?;
+        }
         Ok(c)
     }
 }
@@ -189,8 +224,25 @@ fn json_list(v: &[String]) -> String {
 /// Open a session of `role` configured by `args`.
 pub async fn open(args: &CommonArgs, role: Role) -> Result<Session, BusError> {
     let cfg = args.config(role)?;
-    zenoh::open(cfg).await.map_err(|e| BusError::Open(e.to_string()))
+    zenoh::open(cfg).await.map_err(|e| open_error(args, e))
 }
+
+/// Why a session did not open, with the likely cause when it logs in: a router refuses
+/// a wrong or missing password by closing the link, which Zenoh reports as a failure
+/// to connect.
+fn open_error(args: &CommonArgs, e: zenoh::Error) -> BusError {
+    match &args.credentials {
+        Some(p) => BusError::Open(format!(
+            "{e} (logging in as the user of {}: a wrong password or a router that does not know the user is refused like an unreachable one)",
+            p.display()
+        )),
+        None => BusError::Open(e.to_string()),
+    }
+}
+
+/// The `RUST_LOG` directive every GEESE binary adds last: Zenoh prints a session's whole
+/// configuration, login password included, at debug level as the session opens.
+pub const HIDE_SECRETS_DIRECTIVE: &str = "zenoh::api::session=info";
 
 /// Open the world server's session and return it with the locators others must
 /// connect to. A TCP listen endpoint with port 0 gets a free port of this host picked
@@ -218,7 +270,7 @@ pub async fn open_world(args: &CommonArgs) -> Result<(Session, Vec<String>), Bus
                 }
                 return Ok((s, locators));
             }
-            Err(e) => last = e.to_string(),
+            Err(e) => last = open_error(args, e).to_string(),
         }
     }
     Err(BusError::Open(last))
@@ -280,6 +332,18 @@ pub async fn fetch_run_info(
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+}
+
+/// Is a liveliness token on `key` still declared? Asked when a subscriber is told it
+/// went: with routers on several hosts (Zenoh 1.10.2), a client joining a router was
+/// seen to make that router report the world's token gone to the other clients
+/// connected there, while the world ran on and its token stayed (tests/it/multihost.rs).
+/// A departure is believed only if a liveliness query, answered through the routers,
+/// finds no such token within a second.
+pub async fn still_present(session: &Session, key: &str) -> bool {
+    use std::time::Duration;
+    let Ok(replies) = session.liveliness().get(key).timeout(Duration::from_secs(1)).await else { return false };
+    matches!(tokio::time::timeout(Duration::from_millis(1500), replies.recv_async()).await, Ok(Ok(r)) if r.result().is_ok())
 }
 
 /// The environment variable Zenoh reads its internal runtime sizes from.

@@ -25,6 +25,19 @@ pub fn bin_path(package: &str, bin: &str) -> PathBuf {
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")));
     cmd.current_dir(manifest_dir.join(".."));
+    // Not the variables cargo sets for running this test: some build scripts (ring's)
+    // track e.g. CARGO_MANIFEST_DIR, and a value different from the outer build's makes
+    // them, and everything above them, rebuild every time.
+    for (k, _) in std::env::vars_os() {
+        let k = k.to_string_lossy();
+        let test_only = ["CARGO_PKG_", "CARGO_MANIFEST_", "CARGO_CRATE_", "CARGO_BIN_"]
+            .iter()
+            .any(|p| k.starts_with(p))
+            || ["CARGO_PRIMARY_PACKAGE", "CARGO_TARGET_TMPDIR", "CARGO_RUSTC_CURRENT_DIR", "OUT_DIR"].contains(&&*k);
+        if test_only {
+            cmd.env_remove(&*k);
+        }
+    }
     let status = cmd.status().expect("run cargo build");
     assert!(status.success(), "building {bin} failed");
     path

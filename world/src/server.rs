@@ -242,6 +242,9 @@ impl Server {
                 keys::tally(&mut self.hosts, agents, alive);
                 if alive {
                     self.revive.extend(agents.ids());
+                    if !matches!(self.phase, Phase::Joining { .. }) {
+                        tracing::info!("agent process {agents} joined at step {}", self.world.step());
+                    }
                     return Released::default();
                 }
                 let out = self.hub.forget(agents);

@@ -65,6 +65,28 @@ struct Args {
     /// At the end, write this process's agents as population members (JSON) here.
     #[arg(long)]
     population_out: Option<std::path::PathBuf>,
+    /// When the world's presence goes (a lost link, a partitioned host), wait up to MS
+    /// milliseconds for it to come back and join again with fresh agents, as a restarted
+    /// process would [default 0: exit].
+    #[arg(long, value_name = "MS", default_value_t = 0)]
+    rejoin_ms: u64,
+}
+
+/// A task that ends with the membership that started it.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// How one membership of the run ended.
+enum Ended {
+    /// A stop command, a signal, or the run's end.
+    Stopped,
+    /// The world's presence token went.
+    WorldLeft,
 }
 
 /// What the callbacks queue for the loop, as received.
@@ -98,8 +120,11 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> Result<()> {
     // Without RUST_LOG: warnings, but not Zenoh's report of data that arrives for a cell
     // subscription just undeclared (harmless: the cell is no longer needed).
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,zenoh::api::session=off"));
+    // Zenoh logs a session's configuration, password included, at debug level.
+    let filter = match tracing_subscriber::EnvFilter::try_from_default_env() {
+        Ok(f) => f.add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?),
+        Err(_) => tracing_subscriber::EnvFilter::new("warn,zenoh::api::session=off"),
+    };
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     let args = Args::parse();
     if !keys::valid_run_name(&args.run) {
@@ -115,6 +140,45 @@ fn main() -> Result<()> {
 }
 
 async fn host_main(args: Args, range: AgentRange) -> Result<()> {
+    // A signal ends the process whichever membership it is in.
+    let (signalled_tx, signalled) = tokio::sync::watch::channel(false);
+    tokio::spawn(async move {
+        zenoh_bus::shutdown_signal().await;
+        let _ = signalled_tx.send(true);
+    });
+    let mut patience = Duration::from_millis(args.join_timeout_ms);
+    let mut rejoining = false;
+    loop {
+        let mut sig = signalled.clone();
+        let ended = tokio::select! {
+            r = member(&args, range, patience, sig.clone()) => r,
+            _ = sig.wait_for(|s| *s) => return Ok(()),
+        };
+        match ended {
+            Ok(Ended::WorldLeft) if args.rejoin_ms > 0 => {
+                tracing::warn!("agents {range}: the world left; waiting up to {} ms to join again", args.rejoin_ms);
+                patience = Duration::from_millis(args.rejoin_ms);
+                rejoining = true;
+            }
+            Ok(_) => return Ok(()),
+            // The world did not come back in time: the run is over for us.
+            Err(e) if rejoining => {
+                tracing::warn!("agents {range}: not joined again: {e:#}");
+                return Ok(());
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+/// Join the run (waiting up to `patience` for the world), take part until it ends for
+/// us, and say how it ended.
+async fn member(
+    args: &Args,
+    range: AgentRange,
+    patience: Duration,
+    mut signalled: tokio::sync::watch::Receiver<bool>,
+) -> Result<Ended> {
     let session = zenoh_bus::open(&args.zenoh, Role::Client).await?;
     let run = args.run.clone();
     let (tx, mut rx) = unbounded_channel::<Event>();
@@ -124,19 +188,41 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         .liveliness()
         .declare_subscriber(keys::all_presence(&run))
         .history(true)
-        .callback(move |s| {
-            let alive = s.kind() == SampleKind::Put;
-            let _ = t.send(Event::Presence { alive, key: s.key_expr().as_str().to_owned() });
+        .callback({
+            let (session, world) = (session.clone(), keys::world_presence(&run));
+            move |s| {
+                let alive = s.kind() == SampleKind::Put;
+                let key = s.key_expr().as_str().to_owned();
+                if !alive && key == world {
+                    // Confirmed first: see zenoh_bus::still_present.
+                    let (t, session, world) = (t.clone(), session.clone(), world.clone());
+                    tokio::spawn(async move {
+                        if zenoh_bus::still_present(&session, &world).await {
+                            tracing::warn!("the world's presence token was reported gone but is still there; ignored");
+                        } else {
+                            let _ = t.send(Event::Presence { alive, key });
+                        }
+                    });
+                    return;
+                }
+                let _ = t.send(Event::Presence { alive, key });
+            }
         })
         .await
         .map_err(zerr)?;
     let t = tx.clone();
-    tokio::spawn(async move {
-        zenoh_bus::shutdown_signal().await;
+    let _signal = AbortOnDrop(tokio::spawn(async move {
+        let _ = signalled.wait_for(|s| *s).await;
         let _ = t.send(Event::Stop);
-    });
-    let (info, zenoh_rt) =
-        zenoh_bus::fetch_run_info(&session, &run, Duration::from_millis(args.join_timeout_ms)).await?;
+    }));
+    let info = zenoh_bus::fetch_run_info(&session, &run, patience).await;
+    let (info, zenoh_rt) = match info {
+        Ok(i) => i,
+        Err(e) => {
+            let _ = session.close().await;
+            return Err(e.into());
+        }
+    };
     let t = tx.clone();
     let _tick = session
         .declare_subscriber(keys::tick(&run))
@@ -159,7 +245,7 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
         .map_err(zerr)?;
     let t = tx.clone();
     let _detail = session
-        .declare_queryable(format!("{}/agent/*/detail", keys::run_prefix(&run)))
+        .declare_queryable(keys::agents_detail(&run, range))
         .callback(move |q| {
             let _ = t.send(Event::Detail(q));
         })
@@ -208,7 +294,7 @@ async fn host_main(args: Args, range: AgentRange) -> Result<()> {
             let bytes = serde_json::to_vec(&members)?;
             std::fs::write(&path, bytes).with_context(|| format!("cannot write {}", path.display()))?;
         }
-        r
+        r.map(|_| if host.world_left() { Ended::WorldLeft } else { Ended::Stopped })
     };
     // Run the agents on Zenoh's own (single-threaded, see LEAN_ZENOH_RUNTIME) runtime:
     // receiving, deciding and sending then happen on one thread, with no hand-off
@@ -257,10 +343,10 @@ impl Shell {
                         None => rx.recv().await,
                     };
                     let Some(ev) = ev else { return Ok(()) };
-                    absorb(host, ev);
+                    absorb(host, &self.run, self.range, ev);
                     // Take whatever else is queued before deciding again.
                     while let Ok(ev) = rx.try_recv() {
-                        absorb(host, ev);
+                        absorb(host, &self.run, self.range, ev);
                     }
                 }
             }
@@ -336,7 +422,7 @@ impl Shell {
     }
 }
 
-fn absorb(host: &mut Host, ev: Event) {
+fn absorb(host: &mut Host, run: &str, range: AgentRange, ev: Event) {
     let now = Instant::now();
     match ev {
         Event::Tick(b) => host.absorb(Input::Tick(&b), now),
@@ -347,21 +433,21 @@ fn absorb(host: &mut Host, ev: Event) {
         Event::Hostile => host.absorb(Input::Hostile, now),
         Event::Presence { alive, key } => host.absorb(Input::Presence { alive, key: &key }, now),
         Event::Stop => host.absorb(Input::Stop, now),
-        Event::Detail(q) => reply_detail(host, q),
+        Event::Detail(q) => reply_detail(host, run, range, q),
     }
 }
 
 /// Answer the live viewer's question about one of our agents (between two decisions,
 /// from the host's own loop: the learners are not shared with any other thread). A key
 /// that names no agent of ours gets no answer; the process hosting it answers.
-fn reply_detail(host: &Host, q: zenoh::query::Query) {
+fn reply_detail(host: &Host, run: &str, range: AgentRange, q: zenoh::query::Query) {
     use zenoh::Wait;
     let key = q.key_expr().as_str();
-    let id = key.split('/').rev().nth(1).and_then(AgentRange::parse).filter(|r| r.len() == 1).map(|r| r.first);
+    let id = key.rsplit('/').next().and_then(AgentRange::parse).filter(|r| r.len() == 1).map(|r| r.first);
     let Some(detail) = id.and_then(|id| host.detail(id)) else { return };
     match geese_proto::encode(&detail) {
         Ok(bytes) => {
-            if let Err(e) = q.reply(q.key_expr().clone(), bytes).wait() {
+            if let Err(e) = q.reply(keys::agent_detail_reply(run, range, detail.id), bytes).wait() {
                 tracing::debug!("detail reply not sent: {e}");
             }
         }

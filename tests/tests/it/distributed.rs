@@ -24,7 +24,7 @@ pub(crate) fn serial() -> std::sync::MutexGuard<'static, ()> {
 }
 
 /// Directory holding freshly built geese-world and geese-agent (and geese).
-fn bin_dir() -> PathBuf {
+pub(crate) fn bin_dir() -> PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let w = geese_tests::bin_path("geese-world", "geese-world");
@@ -78,7 +78,7 @@ pub(crate) fn in_process(cfg: &RunConfig) -> Vec<StepReport> {
     (0..cfg.steps).map(|_| t.step()).collect()
 }
 
-fn options(processes: u32, per: Option<u32>) -> NetOptions {
+pub(crate) fn options(processes: u32, per: Option<u32>) -> NetOptions {
     NetOptions {
         processes,
         agents_per_process: per,
@@ -103,7 +103,7 @@ fn distributed(cfg: &RunConfig, opts: &NetOptions) -> (Vec<NetReport>, Vec<u32>)
     (reps, pids)
 }
 
-fn alive(pid: u32) -> bool {
+pub(crate) fn alive(pid: u32) -> bool {
     // A zombie has no status worth the name; /proc/<pid>/stat state Z counts as gone.
     match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
         Ok(s) => !s.rsplit(')').next().unwrap_or("").trim_start().starts_with('Z'),
@@ -112,7 +112,7 @@ fn alive(pid: u32) -> bool {
 }
 
 /// Every listed process has exited (give them a bounded moment).
-fn assert_all_gone(pids: &[u32]) {
+pub(crate) fn assert_all_gone(pids: &[u32]) {
     let until = Instant::now() + Duration::from_secs(10);
     while pids.iter().any(|&p| alive(p)) && Instant::now() < until {
         std::thread::sleep(Duration::from_millis(50));
@@ -121,7 +121,7 @@ fn assert_all_gone(pids: &[u32]) {
     assert!(left.is_empty(), "orphan processes: {left:?}");
 }
 
-fn step_reports(r: &[NetReport]) -> Vec<StepReport> {
+pub(crate) fn step_reports(r: &[NetReport]) -> Vec<StepReport> {
     r.iter().map(|n| n.report.clone()).collect()
 }
 
@@ -334,6 +334,9 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
     let mut opts = options(4, Some(3));
     // Process 0 (agents 0-2) reads no cell topic: garbage on its own keys is counted too.
     opts.subscribe = Some("all,cells".into());
+    // What the receivers do with whatever gets through (DESIGN.md §7), so no logins: a
+    // secured run's router would refuse this attacker (tests/it/security.rs).
+    opts.security = geese_orchestrator::launch::Security::Off;
     let (tx, rx) = std::sync::mpsc::channel::<(String, geese_proto::zenoh_bus::CommonArgs, (i32, i32))>();
     let mut sent = false;
     let mut reps: Vec<NetReport> = Vec::new();
@@ -616,6 +619,22 @@ fn geese_control_perturbs_and_stops_a_running_world() {
         }
     });
     let endpoint = rx.recv_timeout(Duration::from_secs(60)).expect("world endpoint announced");
+    // The launcher prints where the operator credential is (the run is secured; only
+    // the operator may use the control plane), and later its results.
+    let stdout = child.stdout.take().expect("stdout");
+    let (cred_tx, cred_rx) = std::sync::mpsc::channel();
+    let printed = std::thread::spawn(move || {
+        let mut all = String::new();
+        for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
+            if let Some(c) = line.split("--credentials ").nth(1) {
+                let _ = cred_tx.send(c.split(" (").next().unwrap_or(c).to_string());
+            }
+            all.push_str(&line);
+            all.push('\n');
+        }
+        all
+    });
+    let credentials = cred_rx.recv_timeout(Duration::from_secs(60)).expect("operator credential announced");
     let steps = dir.path().join("steps.csv");
     let until = Instant::now() + Duration::from_secs(60);
     while std::fs::read_to_string(&steps).map(|s| s.lines().count()).unwrap_or(0) < 50 && Instant::now() < until {
@@ -623,7 +642,7 @@ fn geese_control_perturbs_and_stops_a_running_world() {
     }
     let control = |args: &[&str]| {
         let out = std::process::Command::new(&geese)
-            .args(["control", "--run", &run_name, "-e", &endpoint])
+            .args(["control", "--run", &run_name, "-e", &endpoint, "--credentials", &credentials])
             .args(args)
             .output()
             .expect("run geese control");
@@ -651,9 +670,9 @@ fn geese_control_perturbs_and_stops_a_running_world() {
     assert_all_gone(&kids);
     let m = std::fs::read_to_string(dir.path().join("manifest.json")).expect("manifest written");
     assert!(m.contains("SetLateralTransfer"), "{m}");
-    let mut out = String::new();
-    std::io::Read::read_to_string(&mut child.stdout.take().expect("stdout"), &mut out).expect("stdout");
+    let out = printed.join().expect("stdout reader");
     assert!(out.contains("stopped at step"), "{out}");
+    assert!(!std::path::Path::new(&credentials).exists(), "the run's secrets outlived it");
     // Lateral transfer is off from the first step after the change took effect: at `at`
     // if the message arrived in time, else as soon as it arrived (the world runs on).
     let csv = std::fs::read_to_string(&steps).expect("csv");

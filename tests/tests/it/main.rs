@@ -3,5 +3,7 @@ mod campaign;
 mod core;
 mod distributed;
 mod fuzz;
+mod multihost;
 mod protocol;
+mod security;
 mod view;

@@ -53,8 +53,11 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> Result<()> {
     // Without RUST_LOG: warnings, and the server's notes on processes joining and
     // leaving.
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,geese_world=info"));
+    // Zenoh logs a session's configuration, password included, at debug level.
+    let filter = match tracing_subscriber::EnvFilter::try_from_default_env() {
+        Ok(f) => f.add_directive(zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?),
+        Err(_) => tracing_subscriber::EnvFilter::new("warn,geese_world=info"),
+    };
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     let args = Args::parse();
     let text = std::fs::read_to_string(&args.spec).with_context(|| format!("cannot read {}", args.spec.display()))?;
