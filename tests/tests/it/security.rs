@@ -285,10 +285,32 @@ fn secure_init_and_bad_security_input() {
     std::fs::write(&acl, "{ enabled: true, rules: [ { id: 7 } ] ").expect("write");
     fails(&["router", "-l", "tcp/127.0.0.1:0", "--acl", acl.to_str().expect("p")], &["acl.json5", "access-control"]);
     // A run given secrets made for another run name, or lacking its processes.
+    let res = dir.path().join("results");
+    let r = res.to_str().expect("path");
     fails(
-        &["run", "--agents", "10", "--steps", "5", "--processes", "2", "--secrets", o, "--run-name", "other"],
+        &[
+            "run",
+            "--agents",
+            "10",
+            "--steps",
+            "5",
+            "--processes",
+            "2",
+            "--secrets",
+            o,
+            "--run-name",
+            "other",
+            "--out",
+            r,
+        ],
         &["exp1", "other"],
     );
-    fails(&["run", "--agents", "10", "--steps", "5", "--processes", "2", "--secrets", o], &["no credential", "0-4"]);
-    fails(&["run", "--agents", "10", "--steps", "5", "--processes", "0"], &["--secrets", "geese secure init"]);
+    fails(
+        &["run", "--agents", "10", "--steps", "5", "--processes", "2", "--secrets", o, "--out", r],
+        &["no credential", "0-4"],
+    );
+    fails(
+        &["run", "--agents", "10", "--steps", "5", "--processes", "0", "--out", r],
+        &["--secrets", "geese secure init"],
+    );
 }
