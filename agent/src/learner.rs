@@ -42,8 +42,9 @@ pub enum FitnessVariant {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LearnerConfig {
-    /// Storage threshold ST.
-    pub st: usize,
+    /// Storage threshold ST; `None` = the algorithm's own ([`default_st`]: 7, the paper's,
+    /// for BeTr-GEESE and GEESE-BT; 10, the reference code's, for both Multi-GEESE phases).
+    pub st: Option<usize>,
     /// Stagnation age (`gstep`): steps without a gene change before the rule may fire.
     pub stagnation_age: u32,
     /// Stagnation exploration floor (`expp`); 0 disables the rule.
@@ -79,13 +80,29 @@ pub enum Triggers {
     GeeseBt,
 }
 
+/// The storage threshold of the paper (Sec. 3–5 command lines, REFERENCE §5.1).
+pub const PAPER_ST: usize = 7;
+/// The storage threshold the reference code's Multi-GEESE collect and combine phases ran
+/// with (the `mgene` script default, REFERENCE §7.1–7.2, §10.2).
+pub const MULTI_GEESE_ST: usize = 10;
+
+/// The storage threshold a learner uses when the run sets none: 10 for the Multi-GEESE
+/// phases (the reference code's), 7 otherwise (the paper's).
+pub fn default_st(multi_geese: bool) -> usize {
+    if multi_geese {
+        MULTI_GEESE_ST
+    } else {
+        PAPER_ST
+    }
+}
+
 /// Age after which a GEESE-BT agent with no positive fitness takes fresh individuals.
 pub const GEESE_BT_STAGNATION_AGE: u32 = 100;
 
 impl Default for LearnerConfig {
     fn default() -> Self {
         LearnerConfig {
-            st: 7,
+            st: None,
             stagnation_age: 200,
             stagnation_explore: 2,
             stagnation_individuals: 10,
@@ -109,7 +126,7 @@ pub enum LearnerConfigError {
 impl LearnerConfig {
     pub fn validate(&self) -> Result<(), LearnerConfigError> {
         let bad = |field, reason: &str| Err(LearnerConfigError::Invalid { field, reason: reason.into() });
-        if self.st < 4 {
+        if self.st.is_some_and(|st| st < 4) {
             return bad("st", "the storage threshold must be at least 4 (a genetic step needs two parents)");
         }
         if self.initial_individuals == 0 {
@@ -235,6 +252,8 @@ pub struct Learner {
     kind: Kind,
     terms: FitnessTerms,
     triggers: Triggers,
+    /// Storage threshold ST in force (the config's, else the algorithm's own).
+    st: usize,
     /// Diversity D of the current phenotype (for the D term).
     gene_d: f64,
     cfg: Arc<LearnerConfig>,
@@ -547,6 +566,7 @@ impl Learner {
             Kind::GeeseBt => Triggers::GeeseBt,
             _ => Triggers::Storage,
         });
+        let st = cfg.st.unwrap_or_else(|| default_st(matches!(kind, Kind::Collect(_) | Kind::Combine(_))));
         let mut gene = gene;
         // A random individual's fitness is its D (fixed agents have none).
         let gene_d = if gene.fitness.is_finite() { gene.fitness } else { 0.0 };
@@ -559,6 +579,7 @@ impl Learner {
             kind,
             terms,
             triggers,
+            st,
             gene_d,
             gene_digest: genome_digest(&gene.genome),
             gene,
@@ -712,7 +733,7 @@ impl Learner {
                 self.gene.fitness >= 0.0 && self.age > self.cfg.stagnation_age && self.view.delivered <= 0
             }
         };
-        if storage_ready && self.pool.len() + cache.lt.joining.len() >= self.cfg.st {
+        if storage_ready && self.pool.len() + cache.lt.joining.len() >= self.st {
             self.evolve(genes, cache);
             stats.genetic = GeneticTrigger::Storage;
             return self.intent(stats);

@@ -62,6 +62,12 @@ impl Algorithm {
     }
 
     /// The strategy a fixed population of this algorithm uses by default (§8.5).
+    /// The storage threshold ST of this algorithm's learners when the run sets none:
+    /// 10 for Multi-GEESE (the reference code's, REFERENCE §7.1–7.2), 7 otherwise.
+    pub fn default_st(self) -> usize {
+        crate::learner::default_st(self == Algorithm::MultiGeese)
+    }
+
     pub fn default_strategy(self) -> Strategy {
         match self {
             Algorithm::BetrGeese => Strategy::Parallel,

@@ -325,7 +325,7 @@ impl Condition {
         // `{task}` in a grammar name (knob or base) stands for the task.
         c.grammar = c.grammar.map(|g| g.replace("{task}", &task.to_string()));
         if let Some(v) = self.int(Knob::St) {
-            c.learner.st = v as usize;
+            c.learner.st = Some(v as usize);
         }
         if let Some(v) = self.int(Knob::Agents) {
             c.world.agents = v as u32;

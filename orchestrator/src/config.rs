@@ -133,6 +133,9 @@ pub struct RunSpec {
     pub stage: &'static str,
     /// The steps whose locality map the stage counts (`locality`).
     pub locality: Option<Window>,
+    /// The percept reach was the run's choice (`world.percept_reach` unset), so the next
+    /// stage chooses again for its own trees.
+    reach_by_run: bool,
 }
 
 impl RunConfig {
@@ -269,7 +272,13 @@ impl RunConfig {
         stage: &'static str,
         source: &str,
     ) -> Result<RunSpec, ConfigError> {
-        if self.world.percept_reach.is_none() {
+        if self.learner.st.is_none() {
+            // The algorithm's own ST (Multi-GEESE: the reference code's 10), written
+            // into the config so that the manifest shows what ran.
+            self.learner.st = Some(self.algorithm.default_st());
+        }
+        let reach_by_run = self.world.percept_reach.is_none();
+        if reach_by_run {
             // Trees that may move and then sense, pick up or drop within one tick need
             // the cells around the agent's (BeTr-GEESE trees hold one action).
             let several_actions = match &program {
@@ -297,6 +306,7 @@ impl RunConfig {
             follow_up,
             stage,
             locality,
+            reach_by_run,
         })
     }
 
@@ -349,6 +359,11 @@ impl RunSpec {
     /// The stage after this one, given the population this one ended with.
     pub fn next_stage(&self, pop: &Population) -> Result<Option<RunSpec>, ConfigError> {
         let mut c = self.config.clone();
+        if self.reach_by_run {
+            // The collect phase's reach (0: one action a tick) must not carry over to a
+            // combine phase or a fixed test, whose trees act several times a tick.
+            c.world.percept_reach = None;
+        }
         match self.follow_up {
             FollowUp::None => Ok(None),
             FollowUp::Combine => {
@@ -487,6 +502,45 @@ mod tests {
     #[test]
     fn defaults_are_the_paper() {
         let c = RunConfig::default();
-        assert_eq!((c.steps, c.ip, c.learner.st, c.world.grid, c.world.agents), (12_000, 0.85, 7, 10, 100));
+        assert_eq!((c.steps, c.ip, c.learner.st, c.world.grid, c.world.agents), (12_000, 0.85, None, 10, 100));
+        let spec = c.validate().expect("valid");
+        assert_eq!(spec.config.learner.st, Some(7), "the paper's ST for BeTr-GEESE");
+    }
+
+    /// Multi-GEESE runs with the reference code's ST 10 unless the config sets one
+    /// (REFERENCE §7.1–7.2, §10.2); GEESE-BT keeps the paper's 7.
+    #[test]
+    fn st_defaults_by_algorithm_and_a_set_st_wins() {
+        let st = |text: &str| RunConfig::from_toml(text).expect("parses").validate().expect("valid").config.learner.st;
+        assert_eq!(st("algorithm = \"multi-geese\"\n"), Some(10));
+        assert_eq!(st("algorithm = \"geese-bt\"\n"), Some(7));
+        assert_eq!(st("algorithm = \"multi-geese\"\n[learner]\nst = 7\n"), Some(7));
+        assert_eq!(st("[learner]\nst = 12\n"), Some(12));
+    }
+
+    /// A combine phase and a fixed test choose their own percept reach (1: their trees act
+    /// several times a tick), not the collect phase's 0 (REFERENCE §1.8; NOTES "Local
+    /// model after a move").
+    #[test]
+    fn later_stages_choose_their_own_percept_reach() {
+        let c = RunConfig::from_toml("algorithm = \"multi-geese\"\nsample = 0.5\nsteps = 5\n").expect("parses");
+        let collect = c.validate().expect("valid");
+        assert_eq!(collect.config.world.percept_reach, Some(0));
+        let member = |agent: u32| geese_agent::program::Member {
+            phenotype: String::new(),
+            genome: None,
+            fitness: Some(0.0),
+            agent: Some(agent),
+            gene_dict: Some(Default::default()),
+        };
+        let pop = collect.population((0..100).map(member).collect());
+        let combine = collect.next_stage(&pop).expect("builds").expect("a combine phase follows");
+        assert_eq!((combine.stage, combine.config.world.percept_reach), ("combine", Some(1)));
+        let set = RunConfig::from_toml("algorithm = \"multi-geese\"\nsteps = 5\n[world]\npercept_reach = 2\n")
+            .expect("parses")
+            .validate()
+            .expect("valid");
+        let combine = set.next_stage(&pop).expect("builds").expect("a combine phase follows");
+        assert_eq!(combine.config.world.percept_reach, Some(2), "a reach the user set is kept");
     }
 }

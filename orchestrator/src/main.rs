@@ -106,7 +106,7 @@ struct RunArgs {
     /// Interaction probability IP in [0, 1].
     #[arg(long)]
     ip: Option<f64>,
-    /// Storage threshold ST (≥ 4).
+    /// Storage threshold ST (≥ 4) [default: 7; multi-geese 10, the reference code's]
     #[arg(long)]
     st: Option<usize>,
     /// Grid size GS (must divide half the arena).
@@ -197,7 +197,7 @@ impl RunArgs {
             c.ip = v;
         }
         if let Some(v) = self.st {
-            c.learner.st = v;
+            c.learner.st = Some(v);
         }
         if let Some(v) = self.gs {
             c.world.grid = v;
@@ -571,7 +571,14 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
     };
     format!(
         "geese run: {what}, {} agents{transport}, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
-        c.world.agents, c.steps, c.world.task, spec.grammar_name, c.ip, c.learner.st, c.world.grid, c.seed
+        c.world.agents,
+        c.steps,
+        c.world.task,
+        spec.grammar_name,
+        c.ip,
+        c.learner.st.unwrap_or_else(|| c.algorithm.default_st()),
+        c.world.grid,
+        c.seed
     )
 }
 

@@ -149,7 +149,7 @@ fn cfg() -> LearnerConfig {
     LearnerConfig::default()
 }
 fn cfg_st(st: usize) -> LearnerConfig {
-    LearnerConfig { st, ..LearnerConfig::default() }
+    LearnerConfig { st: Some(st), ..LearnerConfig::default() }
 }
 fn approx(a: f64, b: f64) -> bool {
     (a - b).abs() < 1e-9

@@ -46,9 +46,9 @@ fn bad_parameters_are_named() {
     let mut c = RunConfig { ip: 1.5, ..Default::default() };
     assert!(c.clone().validate().unwrap_err().to_string().contains("ip"));
     c.ip = 0.5;
-    c.learner.st = 3;
+    c.learner.st = Some(3);
     assert!(c.clone().validate().unwrap_err().to_string().contains("st"));
-    c.learner.st = 7;
+    c.learner.st = Some(7);
     c.world.grid = 7;
     assert!(c.clone().validate().unwrap_err().to_string().contains("grid"));
     c.world.grid = 10;
@@ -270,7 +270,7 @@ fn the_shipped_locality_config_is_the_reference_locality_world() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/locality.toml");
     let spec = RunConfig::from_file(&path).expect("parses").validate().expect("valid");
     let c = &spec.config;
-    assert_eq!((c.world.agents, c.ip, c.learner.st, c.learner.stagnation_explore), (100, 0.85, 10, 0));
+    assert_eq!((c.world.agents, c.ip, c.learner.st, c.learner.stagnation_explore), (100, 0.85, Some(10), 0));
     assert_eq!(spec.grammar_name, "betr-foraging-avoid");
     assert_eq!(spec.locality.map(|w| (w.from, w.to)), Some((1, 3000)));
     let w = geese_world::World::new(c.world.clone(), c.seed).expect("world");
