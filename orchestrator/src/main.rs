@@ -750,8 +750,10 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> Result<()> {
     // Zenoh logs a session's configuration, password included, at debug level.
-    let filter = tracing_subscriber::EnvFilter::from_default_env()
-        .add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?);
+    let filter = match tracing_subscriber::EnvFilter::try_from_default_env() {
+        Ok(f) => f.add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?),
+        Err(_) => tracing_subscriber::EnvFilter::new("error"),
+    };
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     match Cli::parse().cmd {
         Cmd::Run(a) => run_cmd(a),

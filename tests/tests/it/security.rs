@@ -252,6 +252,44 @@ fn secure_init_and_bad_security_input() {
         let password = line.split(':').nth(1).expect("user:password");
         assert!(!printed.contains(password), "a password was printed");
     }
+    // A secured run logging everything at debug level, and its manifest, hold no password.
+    let logged = dir.path().join("logged");
+    let ok = run(&[
+        "secure",
+        "init",
+        "--run",
+        "logtest",
+        "--agents",
+        "4",
+        "--per-process",
+        "2",
+        "--out",
+        logged.to_str().expect("p"),
+    ]);
+    assert!(ok.status.success());
+    let res = dir.path().join("logged-run");
+    let o = std::process::Command::new(&geese)
+        .args(["run", "--agents", "4", "--steps", "20", "--processes", "2", "--run-name", "logtest", "-q", "--secrets"])
+        .arg(&logged)
+        .arg("--out")
+        .arg(&res)
+        .env("RUST_LOG", "debug")
+        .env("GEESE_BIN_DIR", super::distributed::bin_dir())
+        .output()
+        .expect("run geese");
+    assert!(o.status.success(), "secured run with --secrets failed");
+    let everything = [
+        String::from_utf8_lossy(&o.stdout).to_string(),
+        String::from_utf8_lossy(&o.stderr).to_string(),
+        std::fs::read_to_string(res.join("manifest.json")).expect("manifest"),
+    ]
+    .concat();
+    assert!(everything.len() > 10_000, "too little logged to mean anything ({} bytes)", everything.len());
+    assert!(everything.contains("usrpwd+acl"), "the manifest does not say the run was secured");
+    for line in std::fs::read_to_string(logged.join("users.txt")).expect("users").lines() {
+        let password = line.split(':').nth(1).expect("user:password");
+        assert!(!everything.contains(password), "the password of {line:.12}… was logged");
+    }
     let fails = |args: &[&str], says: &[&str]| {
         let o = run(args);
         let e = String::from_utf8_lossy(&o.stderr).to_string();
