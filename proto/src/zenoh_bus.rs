@@ -334,18 +334,6 @@ pub async fn fetch_run_info(
     }
 }
 
-/// Is a liveliness token on `key` still declared? Asked when a subscriber is told it
-/// went: with routers on several hosts (Zenoh 1.10.2), a client joining a router was
-/// seen to make that router report the world's token gone to the other clients
-/// connected there, while the world ran on and its token stayed (tests/it/multihost.rs).
-/// A departure is believed only if a liveliness query, answered through the routers,
-/// finds no such token within a second.
-pub async fn still_present(session: &Session, key: &str) -> bool {
-    use std::time::Duration;
-    let Ok(replies) = session.liveliness().get(key).timeout(Duration::from_secs(1)).await else { return false };
-    matches!(tokio::time::timeout(Duration::from_millis(1500), replies.recv_async()).await, Ok(Ok(r)) if r.result().is_ok())
-}
-
 /// The environment variable Zenoh reads its internal runtime sizes from.
 pub const ZENOH_RUNTIME_ENV: &str = "ZENOH_RUNTIME";
 

@@ -188,25 +188,9 @@ async fn member(
         .liveliness()
         .declare_subscriber(keys::all_presence(&run))
         .history(true)
-        .callback({
-            let (session, world) = (session.clone(), keys::world_presence(&run));
-            move |s| {
-                let alive = s.kind() == SampleKind::Put;
-                let key = s.key_expr().as_str().to_owned();
-                if !alive && key == world {
-                    // Confirmed first: see zenoh_bus::still_present.
-                    let (t, session, world) = (t.clone(), session.clone(), world.clone());
-                    tokio::spawn(async move {
-                        if zenoh_bus::still_present(&session, &world).await {
-                            tracing::warn!("the world's presence token was reported gone but is still there; ignored");
-                        } else {
-                            let _ = t.send(Event::Presence { alive, key });
-                        }
-                    });
-                    return;
-                }
-                let _ = t.send(Event::Presence { alive, key });
-            }
+        .callback(move |s| {
+            let alive = s.kind() == SampleKind::Put;
+            let _ = t.send(Event::Presence { alive, key: s.key_expr().as_str().to_owned() });
         })
         .await
         .map_err(zerr)?;
