@@ -576,17 +576,33 @@ fn ctrl_c_or_sigkill_of_the_launcher_leaves_no_orphans() {
     // Ctrl-C (SIGINT to the launcher only): it stops the world and kills the rest.
     let dir = tempfile::tempdir().expect("tempdir");
     let (mut child, kids) = long_run(dir.path());
+    assert_eq!(secrets_of(child.id()).len(), 1, "the run's secrets directory");
     signal(child.id(), "-INT");
     assert!(wait_exit(&mut child, Duration::from_secs(20)), "launcher did not exit on SIGINT");
     assert_all_gone(&kids);
+    assert!(secrets_of(child.id()).is_empty(), "the run's secrets outlived it");
 
     // SIGKILL of the launcher: the world sees the orchestrator's token go and stops,
-    // the agents follow the world.
+    // the agents follow the world. (Nothing can remove the run's secrets then; the test
+    // does, as an operator would.)
     let dir = tempfile::tempdir().expect("tempdir");
     let (mut child, kids) = long_run(dir.path());
     signal(child.id(), "-KILL");
     assert!(wait_exit(&mut child, Duration::from_secs(5)));
     assert_all_gone(&kids);
+    for d in secrets_of(child.id()) {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+/// The secrets directories of runs launched by process `pid` (run names `r<pid>-…`).
+fn secrets_of(pid: u32) -> Vec<PathBuf> {
+    let prefix = format!("geese-secrets-r{pid}-");
+    std::fs::read_dir(std::env::temp_dir())
+        .map(|d| {
+            d.flatten().filter(|e| e.file_name().to_string_lossy().starts_with(&prefix)).map(|e| e.path()).collect()
+        })
+        .unwrap_or_default()
 }
 
 /// `geese control` perturbs a running distributed world and stops it: the change takes
