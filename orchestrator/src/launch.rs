@@ -393,19 +393,30 @@ impl crate::campaign::TrialRunner for OverZenoh {
 
 /// The credentials of a run of `agents` agents in processes of `per` under `opts`: made
 /// fresh, opened from `geese secure init`'s directory, or none.
-fn run_secrets(opts: &NetOptions, run: &str, agents: u32, per: u32) -> Result<Option<Secrets>, LaunchError> {
+fn run_secrets(
+    opts: &NetOptions,
+    run: &str,
+    local: &[AgentRange],
+    opened: Option<Secrets>,
+) -> Result<Option<Secrets>, LaunchError> {
     let sec = |e: security::SecurityError| LaunchError::Invalid(e.to_string());
-    match &opts.security {
-        Security::Off => Ok(None),
-        Security::PerRun if opts.processes == 0 => Err(LaunchError::Invalid(
+    match (&opts.security, opened) {
+        (Security::Off, _) => Ok(None),
+        (Security::PerRun, _) if opts.processes == 0 => Err(LaunchError::Invalid(
             "--processes 0: agent processes started elsewhere need credentials; make them with `geese secure init` and pass --secrets DIR (or run --insecure)".into(),
         )),
-        Security::PerRun if opts.zenoh.router.is_some() => Err(LaunchError::Invalid(
+        (Security::PerRun, _) if opts.zenoh.router.is_some() => Err(LaunchError::Invalid(
             "--router: an external router checks logins against its own files; make them with `geese secure init` and pass --secrets DIR to both (or run --insecure)".into(),
         )),
-        Security::PerRun => Secrets::temporary(&Layout::even(run, agents, per)).map(Some).map_err(sec),
-        Security::Dir(dir) => {
-            let s = Secrets::open(dir).map_err(sec)?;
+        (Security::PerRun, _) => {
+            let layout = Layout { run: run.into(), agents: local.to_vec(), routers: Vec::new() };
+            Secrets::temporary(&layout).map(Some).map_err(sec)
+        }
+        (Security::Dir(dir), opened) => {
+            let s = match opened {
+                Some(s) => s,
+                None => Secrets::open(dir).map_err(sec)?,
+            };
             if s.layout().run != run {
                 return Err(LaunchError::Invalid(format!(
                     "--secrets {}: made for run {:?}, not {run:?} (pass --run-name {0:?}, or make new ones)",
@@ -413,15 +424,12 @@ fn run_secrets(opts: &NetOptions, run: &str, agents: u32, per: u32) -> Result<Op
                     s.layout().run
                 )));
             }
-            if opts.processes > 0 {
-                let local = Layout::even(run, agents, per).agents;
-                if let Some(r) = local.iter().find(|r| !s.layout().agents.contains(r)) {
-                    return Err(LaunchError::Invalid(format!(
-                        "--secrets {}: no credential for an agent process of agents {r} (it was made for {})",
-                        dir.display(),
-                        s.layout().agents.iter().map(|r| r.to_string()).collect::<Vec<_>>().join(", ")
-                    )));
-                }
+            if let Some(r) = local.iter().find(|r| !s.layout().agents.contains(r)) {
+                return Err(LaunchError::Invalid(format!(
+                    "--secrets {}: no credential for an agent process of agents {r} (it was made for {})",
+                    dir.display(),
+                    s.layout().agents.iter().map(|r| r.to_string()).collect::<Vec<_>>().join(", ")
+                )));
             }
             Ok(Some(s))
         }
@@ -487,13 +495,15 @@ async fn run_net_async(
 ) -> Result<NetOutcome, LaunchError> {
     let launched = Instant::now();
     let bin_dir = find_bin_dir(opts.bin_dir.as_deref())?;
-    let run = match (&opts.run, &opts.security) {
+    let opened = match &opts.security {
+        Security::Dir(d) => Some(Secrets::open(d).map_err(|e| LaunchError::Invalid(e.to_string()))?),
+        _ => None,
+    };
+    // Secrets made for a run name that run, unless another is asked for.
+    let run = match (&opts.run, &opened) {
         (Some(r), _) => r.clone(),
-        // Secrets made for a run name that run.
-        (None, Security::Dir(d)) => {
-            Secrets::open(d).map_err(|e| LaunchError::Invalid(e.to_string()))?.layout().run.clone()
-        }
-        (None, _) => unique_run_name(),
+        (None, Some(s)) => s.layout().run.clone(),
+        (None, None) => unique_run_name(),
     };
     if !keys::valid_run_name(&run) {
         return Err(LaunchError::Invalid(format!("run name {run:?}")));
@@ -507,7 +517,10 @@ async fn run_net_async(
         Some(k) => k,
         None => n.div_ceil(opts.processes.max(1)),
     };
-    let secrets = run_secrets(opts, &run, n, per)?.map(std::sync::Arc::new);
+    // The id ranges of the agent processes launched here, as the access-control list
+    // names them.
+    let local = if opts.processes > 0 { Layout::even(&run, n, per).agents } else { Vec::new() };
+    let secrets = run_secrets(opts, &run, &local, opened)?.map(std::sync::Arc::new);
     let nspec = net_spec(spec, opts, &run)?;
     let spec_path = std::env::temp_dir().join(format!("geese-{run}.json"));
     std::fs::write(&spec_path, serde_json::to_vec_pretty(&nspec).map_err(|e| LaunchError::Invalid(e.to_string()))?)
@@ -671,20 +684,14 @@ async fn run_net_async(
         spawned: world_pid.into_iter().collect(),
         population_files: Vec::new(),
     };
-    if opts.processes > 0 {
-        let mut first = 0;
-        while first < n {
-            let count = per.min(n - first);
-            swarm.agents.push(AgentProc { first, count, child: None, pid: None, killed: false });
-            if !opts.bare {
-                let i = swarm.population_files.len();
-                swarm.population_files.push(std::env::temp_dir().join(format!("geese-{run}-population-{i}.json")));
-            }
-            first += count;
+    for (i, r) in local.iter().enumerate() {
+        swarm.agents.push(AgentProc { first: r.first, count: r.len(), child: None, pid: None, killed: false });
+        if !opts.bare {
+            swarm.population_files.push(std::env::temp_dir().join(format!("geese-{run}-population-{i}.json")));
         }
-        for i in 0..swarm.agents.len() {
-            swarm.spawn_agent(i)?;
-        }
+    }
+    for i in 0..swarm.agents.len() {
+        swarm.spawn_agent(i)?;
     }
     let processes = swarm.agents.len() as u32;
 

@@ -20,6 +20,8 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError};
 use std::time::{Duration, Instant};
 
 const RUN: &str = "mh";
+/// The run both the three-host and the in-process runs make (same config and seed).
+const RUN_ARGS: [&str; 8] = ["run", "--agents", "8", "--seed", "3", "--layout", "paper", "-q"];
 /// Lease of every link: a silent peer is given up after this long.
 const LEASE_MS: u32 = 2000;
 
@@ -266,29 +268,22 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
         })
     };
     let world_cmd = |steps: &str, out: &Path| -> Vec<String> {
-        let mut v: Vec<String> = [
-            g.as_str(),
-            "run",
-            "--agents",
-            "8",
-            "--seed",
-            "3",
-            "--layout",
-            "paper",
-            "-q",
-            "--processes",
-            "0",
-            "--run-name",
-            RUN,
-            "--router",
-            "tcp/127.0.0.1:7447",
-            "--join-timeout-ms",
-            "60000",
-            "--steps",
-            steps,
-        ]
-        .map(String::from)
-        .to_vec();
+        let mut v: Vec<String> = [g.as_str()].into_iter().chain(RUN_ARGS).map(String::from).collect();
+        v.extend(
+            [
+                "--processes",
+                "0",
+                "--run-name",
+                RUN,
+                "--router",
+                "tcp/127.0.0.1:7447",
+                "--join-timeout-ms",
+                "60000",
+                "--steps",
+                steps,
+            ]
+            .map(String::from),
+        );
         v.extend(["--secrets".into(), secrets.display().to_string(), "--cfg".into(), lease.clone()]);
         v.extend(["--out".into(), out.display().to_string()]);
         v
@@ -298,19 +293,8 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
     let steps = 10_000;
     let inproc = dir.path().join("inproc");
     let st = Command::new(&geese)
-        .args([
-            "run",
-            "--agents",
-            "8",
-            "--seed",
-            "3",
-            "--layout",
-            "paper",
-            "-q",
-            "--steps",
-            &steps.to_string(),
-            "--out",
-        ])
+        .args(RUN_ARGS)
+        .args(["--steps", &steps.to_string(), "--out"])
         .arg(&inproc)
         .stdout(Stdio::null())
         .status()
