@@ -35,7 +35,7 @@ pub struct InitArgs {
     pub ranges: Option<String>,
     /// Names of the routers of a mesh (comma-separated): each gets a `router-NAME` login
     /// for its links to the others.
-    /// Their links use mutual TLS, and a router is known by its certificate's common
+    /// Their links use mutual TLS over QUIC, and a router is known by its certificate's common
     /// name `router-NAME` (deploy/tls/make-test-ca.sh makes test certificates).
     #[arg(long, value_delimiter = ',')]
     pub routers: Vec<String>,

@@ -185,7 +185,8 @@ pub struct Layout {
     pub run: String,
     /// The id range of every agent process (disjoint).
     pub agents: Vec<AgentRange>,
-    /// Names of the routers of a mesh; empty on one host. Router links use mutual TLS:
+    /// Names of the routers of a mesh; empty on one host. Router links use mutual TLS
+    /// (over QUIC):
     /// a router logs in as `router-<name>` and is known by its certificate's common
     /// name, `router-<name>` (the password login is one-way — only the router that
     /// opens a link presents one — while both ends of a TLS link see the other's

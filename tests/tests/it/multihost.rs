@@ -1,10 +1,13 @@
 //! Three "hosts" on one machine (issue 18, DESIGN.md §9): three network namespaces
-//! joined by veth links, one router per host with mutual TLS between routers, the world
-//! on host 1, agent processes on hosts 2 and 3, all logged in and under the generated
-//! access-control list. Checks that the run equals the in-process run step for step
-//! while a rogue with host 2's agent credentials tries to forge everything else, that
-//! cutting host 3's link leaves the world stepping with host 2's agents (and how long it
-//! takes to notice), and that host 3's processes join again when the link comes back.
+//! joined by veth links. Hosts 1 and 2 each run a router, linked by QUIC with mutual TLS
+//! (Zenoh's `tls/` links read and write one rustls stream concurrently,
+//! eclipse-zenoh/zenoh#2557, and broke here under load); host 3 has no router: its agent
+//! process logs in to host 1's router over QUIC. The world is on host 1; everything is
+//! logged in and under the generated access-control list. Checks that the run equals
+//! the in-process run step for step while a rogue with host 2's agent credentials tries
+//! to forge everything else, that cutting host 3's link leaves the world stepping with
+//! host 2's agents (and how long it takes to notice), and that host 3's process joins
+//! again when the link comes back.
 //!
 //! Needs root (CI runs as root) and `ip`; without root it says so and checks nothing.
 //! Every namespace, link and process it makes is removed when it ends, also when it
@@ -206,7 +209,7 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
     let secrets = dir.path().join("secrets");
     let tls = dir.path().join("tls");
     let st = Command::new(&geese)
-        .args(["secure", "init", "--run", RUN, "--agents", "8", "--per-process", "4", "--routers", "h1,h2,h3", "--out"])
+        .args(["secure", "init", "--run", RUN, "--agents", "8", "--per-process", "4", "--routers", "h1,h2", "--out"])
         .arg(&secrets)
         .stdout(Stdio::null())
         .status()
@@ -216,7 +219,7 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
     let st = Command::new("bash")
         .arg(&script)
         .arg(&tls)
-        .args(["h1=10.231.12.1,10.231.13.1", "h2=10.231.12.2,10.231.20.2", "h3=10.231.13.3"])
+        .args(["h1=10.231.12.1,10.231.13.1", "h2=10.231.12.2,10.231.20.2"])
         .stdout(Stdio::null())
         .status()
         .expect("make-test-ca.sh");
@@ -225,30 +228,33 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
     let mut hosts = Hosts::new();
     let g = geese.display().to_string();
     let lease = format!("transport/link/tx/lease:{LEASE_MS}");
-    // Routers: h1 accepts TLS links from h2 and h3; each takes its host's processes on
-    // its own loopback (h2 also on the link the rogue comes in by).
+    // Routers on hosts 1 and 2, linked by QUIC with mutual TLS; each takes its host's
+    // processes on its own loopback (host 2's also on the link the rogue comes in by).
+    // Host 1's router also takes router-less clients from host 3 over QUIC (server
+    // certificate checked by the client, no client certificate: a client presenting a
+    // router's certificate would get that router's rights).
     let mut r1 = vec![g.clone(), "router".into(), "-l".into(), "tcp/127.0.0.1:7447".into()];
-    r1.extend(["-l", "tls/10.231.12.1:7448", "-l", "tls/10.231.13.1:7448"].map(String::from));
+    r1.extend(["-l", "quic/10.231.12.1:7448", "-l", "quic/10.231.13.1:7449#enable_mtls=false"].map(String::from));
     r1.extend(router_args("h1", &secrets, &tls));
     let mut r2 = vec![g.clone(), "router".into(), "-l".into(), "tcp/127.0.0.1:7447".into()];
-    r2.extend(["-l", "tcp/10.231.20.2:7447", "-e", "tls/10.231.12.1:7448"].map(String::from));
+    r2.extend(["-l", "tcp/10.231.20.2:7447", "-e", "quic/10.231.12.1:7448"].map(String::from));
     r2.extend(router_args("h2", &secrets, &tls));
-    let mut r3 = vec![g.clone(), "router".into(), "-l".into(), "tcp/127.0.0.1:7447".into()];
-    r3.extend(["-e", "tls/10.231.13.1:7448"].map(String::from));
-    r3.extend(router_args("h3", &secrets, &tls));
-    for (h, r) in [(0, &r1), (1, &r2), (2, &r3)] {
+    for (h, r) in [(0, &r1), (1, &r2)] {
         let i = hosts.spawn(h, &strs(r), Stdio::piped(), Stdio::inherit());
         let out = hosts.children[i].stdout.take().expect("router stdout");
         wait_line(&lines(out), "listening", Duration::from_secs(30));
     }
     let cred = |user: &str| secrets.join(format!("{user}.cred")).display().to_string();
+    let ca = format!("transport/link/tls/root_ca_certificate:\"{}\"", tls.join("ca.pem").display());
+    // Agent processes 0-3 on host 2 (through its router), 4-7 on host 3 (straight to
+    // host 1's router over QUIC, logged in like any other client).
     let agents = |hosts: &mut Hosts, rejoin: &str| -> [usize; 2] {
-        [(1, 0), (2, 4)].map(|(h, id)| {
+        [(1, 0, "tcp/127.0.0.1:7447"), (2, 4, "quic/10.231.13.1:7449")].map(|(h, id, router)| {
             let range = format!("{}-{}", id, id + 3);
             let cmd = [
                 agent.display().to_string(),
                 "--router".into(),
-                "tcp/127.0.0.1:7447".into(),
+                router.into(),
                 "--run".into(),
                 RUN.into(),
                 "--id".into(),
@@ -259,6 +265,8 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
                 cred(&format!("agents-{range}")),
                 "--cfg".into(),
                 lease.clone(),
+                "--cfg".into(),
+                ca.clone(),
                 "--rejoin-ms".into(),
                 rejoin.into(),
                 "--subscribe".into(),
@@ -289,8 +297,11 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
         v
     };
 
-    // 1. Parity: the run across hosts equals the in-process run.
-    let steps = 10_000;
+    // 1. Parity under attack: the run across hosts equals the in-process run while a
+    // rogue on host 2's router, logged in with host 2's agent credentials, forges
+    // messages of the other agent process, the world and the operator, and tries to log
+    // in without credentials and with a wrong password.
+    let steps = 20_000;
     let inproc = dir.path().join("inproc");
     let st = Command::new(&geese)
         .args(RUN_ARGS)
@@ -306,13 +317,30 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
     let world_out = lines(hosts.children[w].stdout.take().expect("stdout"));
     let _a = agents(&mut hosts, "0");
     wait_line(&world_err, "starting", Duration::from_secs(90));
+    let client = |user: &str| CommonArgs {
+        connect: vec!["tcp/10.231.20.2:7447".into()],
+        credentials: Some(PathBuf::from(cred(user))),
+        cfg: vec![lease.clone()],
+        ..Default::default()
+    };
+    let own = AgentRange::new(0, 4).expect("range");
+    let other = AgentRange::new(4, 4).expect("range");
+    let rogue = attack(RUN, &client("agents-0-3"), &client("viewer"), own, other, 20);
+    eprintln!("three hosts, rogue on host 2's router: {rogue:?}");
+    let during = hosts.children[w].try_wait().expect("status").is_none();
     let (_, wall) = wait_line(&world_out, "wall time", Duration::from_secs(120));
-    eprintln!("three hosts, parity run: {wall}");
+    eprintln!("three hosts, parity run under attack: {wall}");
     let status = hosts.children[w].wait().expect("world host exit");
     while let Ok((_, l)) = world_err.recv_timeout(Duration::from_millis(200)) {
         eprintln!("  | {l}");
     }
     assert!(status.success(), "the run across hosts failed");
+    assert!(during, "the run ended before the attack did: make it longer");
+    assert!(rogue.forged >= 200, "{rogue:?}");
+    assert_eq!(rogue.forged_seen, 0, "forged messages got through: {rogue:?}");
+    assert!(rogue.tokens_seen.is_empty(), "forged tokens got through: {rogue:?}");
+    assert_eq!((rogue.own, rogue.own_seen), (20, 20), "the control did not get through: {rogue:?}");
+    assert!(!rogue.anonymous_opened && !rogue.wrong_password_opened, "{rogue:?}");
     let a = std::fs::read_to_string(inproc.join("steps.csv")).expect("in-process csv");
     let b = std::fs::read_to_string(out_a.join("steps.csv")).expect("three-host csv");
     let diff = a.lines().zip(b.lines()).position(|(x, y)| x != y);
@@ -371,35 +399,4 @@ fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
         rows[first_four + back].0
     );
     assert!(noticed < Duration::from_millis(3 * LEASE_MS as u64), "the cut was noticed after {noticed:?}");
-
-    // 3. A rogue on host 2's router with host 2's agent credentials, in a run of its own:
-    // nothing it forges gets past the router. Its logins were seen to break host 2's TLS
-    // link to host 1 for about a second (NOTES, "Logins and access control"), so host 2's
-    // agents may leave and rejoin, and once the whole run ended during the attack
-    // (cause not found); this run's steps are therefore not compared, and what became of
-    // it is printed.
-    let out_c = dir.path().join("c");
-    let w = hosts.spawn(0, &strs(&world_cmd("1000000", &out_c)), Stdio::null(), Stdio::piped());
-    let world_err = lines(hosts.children[w].stderr.take().expect("stderr"));
-    agents(&mut hosts, "60000");
-    wait_line(&world_err, "starting", Duration::from_secs(90));
-    let client = |user: &str| CommonArgs {
-        connect: vec!["tcp/10.231.20.2:7447".into()],
-        credentials: Some(PathBuf::from(cred(user))),
-        cfg: vec![lease.clone()],
-        ..Default::default()
-    };
-    let own = AgentRange::new(0, 4).expect("range");
-    let other = AgentRange::new(4, 4).expect("range");
-    let rogue = attack(RUN, &client("agents-0-3"), &client("viewer"), own, other, 20);
-    eprintln!("three hosts, rogue on host 2's router: {rogue:?}");
-    eprintln!("three hosts, the run under attack: {:?} (None: still running)", hosts.children[w].try_wait());
-    while let Ok((_, l)) = world_err.recv_timeout(Duration::from_millis(200)) {
-        eprintln!("  | {l}");
-    }
-    assert!(rogue.forged >= 200, "{rogue:?}");
-    assert_eq!(rogue.forged_seen, 0, "forged messages got through: {rogue:?}");
-    assert!(rogue.tokens_seen.is_empty(), "forged tokens got through: {rogue:?}");
-    assert_eq!((rogue.own, rogue.own_seen), (20, 20), "the control did not get through: {rogue:?}");
-    assert!(!rogue.anonymous_opened && !rogue.wrong_password_opened, "{rogue:?}");
 }
