@@ -255,6 +255,11 @@ async fn member(
             .congestion_control(CongestionControl::Block)
             .await
             .map_err(zerr)?,
+        genes: session
+            .declare_publisher(keys::agents_genes(&run, range))
+            .congestion_control(CongestionControl::Block)
+            .await
+            .map_err(zerr)?,
     };
     if wide {
         shell.subscribe_host_keys().await?;
@@ -308,7 +313,10 @@ struct Shell {
     /// The percept and gene subscriptions of each cell (reading cells one by one).
     subs: HashMap<u32, (Subscriber<()>, Subscriber<()>)>,
     wide_subs: Vec<Subscriber<()>>,
+    /// Declared, not `session.put`: a router checks a declared key against its access
+    /// list once and caches the answer; an undeclared key is checked on every message.
     intents: Publisher<'static>,
+    genes: Publisher<'static>,
 }
 
 impl Shell {
@@ -340,12 +348,7 @@ impl Shell {
     async fn carry_out(&mut self, out: Vec<Out>) -> Result<()> {
         for o in out {
             match o {
-                Out::Genes(bytes) => self
-                    .session
-                    .put(keys::agents_genes(&self.run, self.range), bytes)
-                    .congestion_control(CongestionControl::Block)
-                    .await
-                    .map_err(zerr)?,
+                Out::Genes(bytes) => self.genes.put(bytes).await.map_err(zerr)?,
                 Out::Intents(bytes) => self.intents.put(bytes).await.map_err(zerr)?,
                 Out::Subscribe(cell) => self.subscribe_cell(cell).await?,
                 Out::Unsubscribe(cell) => {
