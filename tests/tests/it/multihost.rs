@@ -197,7 +197,7 @@ fn live_per_step(csv: &str) -> Vec<(u64, u32)> {
 }
 
 #[test]
-fn three_hosts_in_network_namespaces_tls_acl_link_cut_and_rejoin() {
+fn three_hosts_in_network_namespaces_quic_mtls_acl_attack_link_cut_and_rejoin() {
     if !is_root() {
         eprintln!("three_hosts_in_network_namespaces: needs root (ip netns); nothing checked");
         return;
