@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # Make a test certificate authority and one certificate per router, for mutual TLS
-# between the routers of a GEESE swarm (deploy/MULTI-HOST.md). For tests and trials:
+# (over QUIC, `quic/` endpoints) between the routers of a GEESE swarm
+# (deploy/MULTI-HOST.md). For tests and trials:
 # in production, have your own CA sign the routers' keys.
 #
 #   deploy/tls/make-test-ca.sh OUT_DIR NAME=IP[,IP...] [NAME=IP...]
 #
 # writes OUT_DIR/ca.pem (the authority every router trusts), and for each NAME
 # OUT_DIR/NAME.pem and OUT_DIR/NAME.key: a certificate whose common name is
-# `router-NAME` (the user `geese secure init --routers NAME --tls` expects), valid for
+# `router-NAME` (the subject `geese secure init --routers NAME` writes), valid for
 # the listed IP addresses (checked when a router connects to it), usable both to accept
 # links (serverAuth) and to open them (clientAuth). Keys are readable by their owner only.
 set -euo pipefail
