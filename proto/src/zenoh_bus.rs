@@ -181,6 +181,14 @@ impl CommonArgs {
         if let Some(r) = &self.router {
             connect.push(r.clone());
         }
+        if let Some(e) = connect.iter().chain(listen).find(|e| e.starts_with("tls/")) {
+            // Zenoh would say only "Unicast not supported for tls protocol".
+            return Err(BusError::Config(format!(
+                "endpoint {e}: GEESE is built without Zenoh's tls/ links (1.10 reads and writes one \
+                 TLS stream from two tasks at once, eclipse-zenoh/zenoh#2557); use quic/ with the same \
+                 transport/link/tls settings (deploy/MULTI-HOST.md)"
+            )));
+        }
         if !connect.is_empty() {
             set(&mut c, "connect/endpoints", &json_list(&connect))?;
             // Keep trying for a while rather than failing at once if the router is late.
@@ -385,6 +393,19 @@ mod tests {
         assert!(c.get_json("connect/endpoints").unwrap().contains("tcp/127.0.0.1:7447"));
         let r = CommonArgs { router: Some("tcp/127.0.0.1:7447".into()), ..Default::default() };
         assert_eq!(r.config(Role::World).unwrap().get_json("mode").unwrap(), "\"client\"");
+    }
+
+    #[test]
+    fn tls_endpoints_are_refused_with_the_way_out() {
+        for a in [
+            CommonArgs { connect: vec!["tls/10.0.0.1:7448".into()], ..Default::default() },
+            CommonArgs { listen: vec!["tls/10.0.0.1:7448".into()], ..Default::default() },
+        ] {
+            let e = a.config(Role::Client).unwrap_err().to_string();
+            assert!(e.contains("tls/10.0.0.1:7448") && e.contains("use quic/"), "{e}");
+        }
+        let q = CommonArgs { connect: vec!["quic/10.0.0.1:7448".into()], ..Default::default() };
+        assert!(q.config(Role::Client).is_ok());
     }
 
     #[test]
