@@ -181,14 +181,6 @@ impl CommonArgs {
         if let Some(r) = &self.router {
             connect.push(r.clone());
         }
-        if let Some(e) = connect.iter().chain(listen).find(|e| e.starts_with("tls/")) {
-            // Zenoh would say only "Unicast not supported for tls protocol".
-            return Err(BusError::Config(format!(
-                "endpoint {e}: GEESE is built without Zenoh's tls/ links (1.10 reads and writes one \
-                 TLS stream from two tasks at once, eclipse-zenoh/zenoh#2557); use quic/ with the same \
-                 transport/link/tls settings (deploy/MULTI-HOST.md)"
-            )));
-        }
         if !connect.is_empty() {
             set(&mut c, "connect/endpoints", &json_list(&connect))?;
             // Keep trying for a while rather than failing at once if the router is late.
@@ -206,6 +198,7 @@ impl CommonArgs {
             let (k, v) = pair.split_once(':').ok_or_else(|| BusError::CfgPair(pair.clone()))?;
             c.insert_json5(k, v).map_err(|e| BusError::Config(format!("--cfg {pair}: {e}")))?;
         }
+        refuse_tls_endpoints(&c)?;
         if let Some(p) = &self.credentials {
             security::Credential::read(p)?.apply(&mut c)?;
         }
@@ -217,6 +210,35 @@ impl CommonArgs {
         }
         Ok(c)
     }
+}
+
+/// Zenoh says only "Unicast not supported for tls protocol" for a `tls/` endpoint of this
+/// build; say why and what to use instead. Checked on the finished configuration, so an
+/// endpoint from a config file or a `--cfg` pair is caught as well as one from a flag.
+fn refuse_tls_endpoints(c: &Config) -> Result<(), BusError> {
+    for key in ["connect/endpoints", "listen/endpoints"] {
+        let json = c.get_json(key).unwrap_or_default();
+        if let Some(at) = json.find("\"tls/") {
+            let e = json[at + 1..].split('"').next().unwrap_or("tls/");
+            return Err(BusError::Config(format!(
+                "{key}: {e}: GEESE is built without Zenoh's tls/ links (1.10 reads and writes one TLS \
+                 stream from two tasks at once, eclipse-zenoh/zenoh#2557); use quic/ with the same \
+                 transport/link/tls settings (deploy/MULTI-HOST.md)"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// A publisher on `key` that publishes reliably, as [`put`] does. Declared once, a key
+/// has its routes (and, at a router, its access-list answer) resolved once, not on every
+/// message.
+pub async fn publisher(session: &Session, key: String) -> Result<zenoh::pubsub::Publisher<'static>, BusError> {
+    session
+        .declare_publisher(key.clone())
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| BusError::Zenoh(format!("declare publisher {key}: {e}")))
 }
 
 fn set(c: &mut Config, key: &str, value: &str) -> Result<(), BusError> {
@@ -404,6 +426,8 @@ mod tests {
             let e = a.config(Role::Client).unwrap_err().to_string();
             assert!(e.contains("tls/10.0.0.1:7448") && e.contains("use quic/"), "{e}");
         }
+        let c = CommonArgs { cfg: vec![r#"connect/endpoints:["tls/10.0.0.1:7448"]"#.into()], ..Default::default() };
+        assert!(c.config(Role::Client).unwrap_err().to_string().contains("use quic/"));
         let q = CommonArgs { connect: vec!["quic/10.0.0.1:7448".into()], ..Default::default() };
         assert!(q.config(Role::Client).is_ok());
     }

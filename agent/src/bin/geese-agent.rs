@@ -22,7 +22,6 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
 use zenoh::bytes::ZBytes;
 use zenoh::pubsub::{Publisher, Subscriber};
-use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
 use zenoh::Session;
 
@@ -250,16 +249,8 @@ async fn member(
         tx: tx.clone(),
         subs: HashMap::new(),
         wide_subs: Vec::new(),
-        intents: session
-            .declare_publisher(keys::agents_action(&run, range))
-            .congestion_control(CongestionControl::Block)
-            .await
-            .map_err(zerr)?,
-        genes: session
-            .declare_publisher(keys::agents_genes(&run, range))
-            .congestion_control(CongestionControl::Block)
-            .await
-            .map_err(zerr)?,
+        intents: zenoh_bus::publisher(&session, keys::agents_action(&run, range)).await?,
+        genes: zenoh_bus::publisher(&session, keys::agents_genes(&run, range)).await?,
     };
     if wide {
         shell.subscribe_host_keys().await?;
@@ -313,8 +304,7 @@ struct Shell {
     /// The percept and gene subscriptions of each cell (reading cells one by one).
     subs: HashMap<u32, (Subscriber<()>, Subscriber<()>)>,
     wide_subs: Vec<Subscriber<()>>,
-    /// Declared, not `session.put`: a router checks a declared key against its access
-    /// list once and caches the answer; an undeclared key is checked on every message.
+    /// Declared ([`zenoh_bus::publisher`]), not `session.put` on a key string.
     intents: Publisher<'static>,
     genes: Publisher<'static>,
 }
