@@ -250,7 +250,6 @@ async fn member(
         subs: HashMap::new(),
         wide_subs: Vec::new(),
         intents: zenoh_bus::publisher(&session, keys::agents_action(&run, range)).await?,
-        genes: zenoh_bus::publisher(&session, keys::agents_genes(&run, range)).await?,
     };
     if wide {
         shell.subscribe_host_keys().await?;
@@ -304,9 +303,7 @@ struct Shell {
     /// The percept and gene subscriptions of each cell (reading cells one by one).
     subs: HashMap<u32, (Subscriber<()>, Subscriber<()>)>,
     wide_subs: Vec<Subscriber<()>>,
-    /// Declared ([`zenoh_bus::publisher`]), not `session.put` on a key string.
     intents: Publisher<'static>,
-    genes: Publisher<'static>,
 }
 
 impl Shell {
@@ -338,7 +335,12 @@ impl Shell {
     async fn carry_out(&mut self, out: Vec<Out>) -> Result<()> {
         for o in out {
             match o {
-                Out::Genes(bytes) => self.genes.put(bytes).await.map_err(zerr)?,
+                // Not a declared publisher: with one, the three-host run lost the first
+                // step's genes once in four suite runs (NOTES, "Logins and access
+                // control"; QUIC's stream per priority is the suspect, not proven).
+                Out::Genes(bytes) => {
+                    zenoh_bus::put(&self.session, &keys::agents_genes(&self.run, self.range), bytes).await?
+                }
                 Out::Intents(bytes) => self.intents.put(bytes).await.map_err(zerr)?,
                 Out::Subscribe(cell) => self.subscribe_cell(cell).await?,
                 Out::Unsubscribe(cell) => {
