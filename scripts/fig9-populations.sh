@@ -8,13 +8,18 @@
 # above 40 %, `mgene/experiment.py`; BeTr-GEESE: learning run above 5 %,
 # `resilience_goal/experiment.py`; GEESE-BT: none); of those, the one whose own fixed
 # test scored highest (ties: the lower seed) gives the population. Prints one line per
-# run and writes populations/fig9-<algorithm>-foraging.json. campaigns/fig9-best.toml
-# then tests the three files on seeds the pick did not see.
+# run and writes populations/fig9-<algorithm>-<task>.json. campaigns/fig9-best.toml
+# then tests the three foraging files on seeds the pick did not see; the Section-7
+# campaigns (ablation-ii, addition-ii, distortion-ii, shift-ii) test the Multi-GEESE
+# file of each task, as the paper tests one saved combine population in Figs. 8b-10.
 #
 #   scripts/fig9-populations.sh [FIRST] [LAST]   (the release build, or GEESE=path/to/geese)
+#   TASK=nest ALGORITHMS=multi-geese scripts/fig9-populations.sh   (one task, some algorithms)
 set -euo pipefail
 FIRST="${1:-1}"
 LAST="${2:-16}"
+TASK="${TASK:-foraging}"
+ALGORITHMS="${ALGORITHMS:-geese-bt betr-geese multi-geese}"
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 B="${GEESE:-${CARGO_TARGET_DIR:-$ROOT/target}/release/geese}"
 OUT="$(mktemp -d)"
@@ -25,12 +30,16 @@ final() { grep 'final task %' "$1" | sed -n "${2}p" | awk '{print $NF}'; }
 # above A B: A > B (decimals).
 above() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a > b) }'; }
 
-for spec in geese-bt:0.1 betr-geese:0.5 multi-geese:0.5; do
-    alg="${spec%%:*}" sample="${spec##*:}"
+for alg in $ALGORITHMS; do
+    case "$alg" in
+        geese-bt) sample=0.1 ;;
+        betr-geese | multi-geese) sample=0.5 ;;
+        *) echo "unknown algorithm '$alg' in ALGORITHMS (geese-bt, betr-geese, multi-geese)" >&2; exit 2 ;;
+    esac
     best="" best_seed="" best_pop=""
     for seed in $(seq "$FIRST" "$LAST"); do
         dir="$OUT/$alg-$seed"
-        "$B" run --algorithm "$alg" --sample "$sample" --seed "$seed" --out "$dir" --quiet >"$dir.log" 2>&1
+        "$B" run --algorithm "$alg" --task "$TASK" --sample "$sample" --seed "$seed" --out "$dir" --quiet >"$dir.log" 2>&1
         if [ "$alg" = multi-geese ]; then
             collect=$(final "$dir.log" 1) learn=$(final "$dir.log" 2) fixed=$(final "$dir.log" 3)
             pop="$dir/combine/population.json"
@@ -47,9 +56,9 @@ for spec in geese-bt:0.1 betr-geese:0.5 multi-geese:0.5; do
         fi
     done
     if [ -z "$best" ]; then
-        echo "$alg: no run passed the gates; populations/fig9-$alg-foraging.json not written" >&2
+        echo "$alg: no run passed the gates; populations/fig9-$alg-$TASK.json not written" >&2
         continue
     fi
-    cp "$best_pop" "$ROOT/populations/fig9-$alg-foraging.json"
-    echo "$alg: seed $best_seed (fixed test $best %) -> populations/fig9-$alg-foraging.json"
+    cp "$best_pop" "$ROOT/populations/fig9-$alg-$TASK.json"
+    echo "$alg: seed $best_seed (fixed test $best %) -> populations/fig9-$alg-$TASK.json"
 done

@@ -731,7 +731,7 @@ mod tests {
             "population has no member 5: it has 5 (numbered from 0, best first)"
         );
 
-        let multi = Population::from_json(include_str!("../../populations/multi-geese-foraging.json")).unwrap();
+        let multi = Population::from_json(include_str!("../../populations/fig9-multi-geese-foraging.json")).unwrap();
         let best = multi.sorted_members()[0];
         let dict = best.gene_dict.as_ref().unwrap();
         let bt = multi.member_tree(0).unwrap();

@@ -156,7 +156,7 @@ fn cli_grammar_metrics_prints_table_2() {
 #[test]
 fn cli_grammar_tree_draws_pictures_of_population_members() {
     let pops = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../populations");
-    let multi = pops.join("multi-geese-foraging.json");
+    let multi = pops.join("fig9-multi-geese-foraging.json");
     let multi = multi.to_str().expect("utf8");
     let dir = tempfile::tempdir().expect("tmp");
     let svg = dir.path().join("member.svg");
