@@ -250,6 +250,7 @@ async fn member(
         subs: HashMap::new(),
         wide_subs: Vec::new(),
         intents: zenoh_bus::publisher(&session, keys::agents_action(&run, range)).await?,
+        genes_key: keys::agents_genes(&run, range),
     };
     if wide {
         shell.subscribe_host_keys().await?;
@@ -304,6 +305,8 @@ struct Shell {
     subs: HashMap<u32, (Subscriber<()>, Subscriber<()>)>,
     wide_subs: Vec<Subscriber<()>>,
     intents: Publisher<'static>,
+    /// Where this process's gene bundles go (built once, not every step).
+    genes_key: String,
 }
 
 impl Shell {
@@ -338,9 +341,7 @@ impl Shell {
                 // Not a declared publisher: with one, the three-host run lost the first
                 // step's genes once in four suite runs (NOTES, "Logins and access
                 // control"; QUIC's stream per priority is the suspect, not proven).
-                Out::Genes(bytes) => {
-                    zenoh_bus::put(&self.session, &keys::agents_genes(&self.run, self.range), bytes).await?
-                }
+                Out::Genes(bytes) => zenoh_bus::put(&self.session, &self.genes_key, bytes).await?,
                 Out::Intents(bytes) => self.intents.put(bytes).await.map_err(zerr)?,
                 Out::Subscribe(cell) => self.subscribe_cell(cell).await?,
                 Out::Unsubscribe(cell) => {
