@@ -19,8 +19,8 @@ use crate::program::{FitnessTerms, GeneDict, Role, StoredGene};
 use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
-    AgentId, AgentStats, BehaviourClass, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo, Percept,
-    Regime,
+    AgentId, AgentStats, BehaviourClass, CellIdx, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo,
+    Percept, Regime,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -689,6 +689,14 @@ impl Learner {
         GeneMsg { step, from: self.id, genome: g.genome.clone(), fitness: g.fitness, mapping }
     }
 
+    /// Exchange this agent's blackboard with `board`. An in-process trial that gives
+    /// every agent one blackboard (the reference code's single global `neighbourobj`
+    /// map, REFERENCE §2.2) swaps the shared one in before the agent's step and out after
+    /// it; agents in separate processes cannot share one (DESIGN §2).
+    pub fn swap_blackboard(&mut self, board: &mut crate::view::KindMap) {
+        std::mem::swap(&mut self.view.blackboard, board);
+    }
+
     /// Cell-mates whose genes this step should bring (sorted by id).
     pub fn expected_mates(&self) -> &[AgentId] {
         &self.expected
@@ -699,7 +707,22 @@ impl Learner {
     /// ignored). Without a percept the agent idles: an empty intent.
     ///
     /// `cache` holds the mapped genes of senders, shared by the learners of a process.
+    #[inline]
     pub fn finish_step<G: Gene>(&mut self, genes: &[G], cache: &mut GeneCache) -> Intent {
+        self.finish_step_with(cache, |_, _| genes)
+    }
+
+    /// [`Learner::finish_step`] whose cell-mates are chosen after the agent has acted:
+    /// `mates(expected, cell)` gets the cell the tick's own moves took the agent to, may
+    /// replace the expected cell-mates (sorted by id) and returns their genes. This is
+    /// the reference code's order (REFERENCE §6.2 step 6: the genes of the agents in the
+    /// cell the agent is in *after* acting), which only a trial whose agents take turns
+    /// can offer; the lock-step protocol exchanges genes on the start-of-step cell.
+    pub fn finish_step_with<'g, G: Gene + 'g>(
+        &mut self,
+        cache: &mut GeneCache,
+        mates: impl FnOnce(&mut Vec<AgentId>, CellIdx) -> &'g [G],
+    ) -> Intent {
         let mut stats = AgentStats::default();
         if !self.have_percept {
             return Intent { step: self.step, agent: self.id, heading: self.view.heading, ops: Vec::new(), stats };
@@ -721,6 +744,7 @@ impl Learner {
         }
         // 6. sense: lateral transfer through the IP filter; its survivors join the pool
         //    (`cache.lt.joining`).
+        let genes = mates(&mut self.expected, self.view.cell());
         cache.lt.clear();
         if self.regime.lateral_transfer {
             stats.lt_rate = self.lateral_transfer(genes, &mut stats.genes_lost, cache);

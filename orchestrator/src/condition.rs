@@ -130,6 +130,12 @@ knobs! {
     Grid = "grid": Kind::Int(1, 100_000),
     /// Number of sites, food split among them at random (Sec. 7 shift II; paper layout).
     Sites = "sites": Kind::Int(1, 36),
+    /// Step schedule: simultaneous (DESIGN §2) or sequential (the reference code's turns;
+    /// in-process campaigns only).
+    Schedule = "schedule": Kind::Text,
+    /// Blackboard scope: per-agent (DESIGN §2) or global (the reference code's; in-process
+    /// campaigns only).
+    Blackboard = "blackboard": Kind::Text,
     /// Fraction of the live agents killed ...
     Kill = "kill": Kind::Float(0.0, 1.0),
     /// ... after this step.
@@ -219,6 +225,18 @@ pub struct KnobError {
 
 fn knob_err(knob: Knob, reason: impl Into<String>) -> KnobError {
     KnobError { knob: knob.name().into(), reason: reason.into() }
+}
+
+/// A value of one of the `[fidelity]` enums, spelt as in a config file.
+fn value_enum<E: clap::ValueEnum>(s: &str) -> Result<E, String> {
+    E::from_str(s, false).map_err(|_| {
+        let known: Vec<String> = E::value_variants()
+            .iter()
+            .filter_map(|v| v.to_possible_value())
+            .map(|p| p.get_name().to_string())
+            .collect();
+        format!("'{s}' is not one of: {}", known.join(", "))
+    })
 }
 
 impl Condition {
@@ -314,6 +332,12 @@ impl Condition {
         }
         if let Some(Level::Text(p)) = self.get(Knob::Population) {
             c.population = Some(p.into());
+        }
+        if let Some(Level::Text(s)) = self.get(Knob::Schedule) {
+            c.fidelity.schedule = value_enum(s).map_err(|e| knob_err(Knob::Schedule, e))?;
+        }
+        if let Some(Level::Text(s)) = self.get(Knob::Blackboard) {
+            c.fidelity.blackboard = value_enum(s).map_err(|e| knob_err(Knob::Blackboard, e))?;
         }
         if let Some(Level::Text(s)) = self.get(Knob::Strategy) {
             c.strategy = Some(s.parse().map_err(|e: String| knob_err(Knob::Strategy, e))?);
@@ -444,6 +468,20 @@ mod tests {
         assert!(Knob::St.level(&toml::Value::Integer(3)).is_err());
         assert_eq!(Knob::from_name("lt_off_for"), Some(Knob::LtOffFor));
         assert_eq!(Knob::from_name("bogus"), None);
+    }
+
+    /// `schedule` and `blackboard` set the trial's `[fidelity]`; a bad value names the
+    /// knob and the values it takes.
+    #[test]
+    fn fidelity_knobs_set_the_schedule_and_blackboard() {
+        use crate::config::{Blackboard, Schedule};
+        let text = |s: &str| Level::Text(s.into());
+        let c = cond(&[(Knob::Schedule, text("sequential")), (Knob::Blackboard, text("global"))]);
+        let r = c.apply(&RunConfig::default(), Task::Foraging, 1, Coupling::default()).unwrap();
+        assert_eq!((r.fidelity.schedule, r.fidelity.blackboard), (Schedule::Sequential, Blackboard::Global));
+        let bad = cond(&[(Knob::Schedule, text("turns"))]);
+        let err = bad.apply(&RunConfig::default(), Task::Foraging, 1, Coupling::default()).unwrap_err().to_string();
+        assert!(err.contains("schedule") && err.contains("simultaneous, sequential"), "{err}");
     }
 
     #[test]

@@ -58,6 +58,9 @@ pub struct RunConfig {
     pub world: WorldConfig,
     pub learner: LearnerConfig,
     pub perturbations: Vec<Scheduled>,
+    /// Where a trial follows the reference code instead of DESIGN §2 (in one process
+    /// only): the step schedule and the blackboard's scope.
+    pub fidelity: Fidelity,
     /// Count the locality map (Fig. 5) over steps `FROM:TO`, both included, step 1
     /// being the first ([`geese_world::locality`]); written to `locality.csv`.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -83,7 +86,64 @@ impl Default for RunConfig {
             world: WorldConfig::default(),
             learner: LearnerConfig::default(),
             perturbations: Vec::new(),
+            fidelity: Fidelity::default(),
             locality: None,
+        }
+    }
+}
+
+/// The two departures of DESIGN §2 from the reference code that a trial in one process
+/// can undo (REFERENCE §9.2): agents separate processes cannot see one another's moves
+/// within a step nor share a blackboard, so the defaults are what every transport can
+/// do, and a distributed run refuses anything else ([`Fidelity::check_distributed`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Fidelity {
+    pub schedule: Schedule,
+    pub blackboard: Blackboard,
+}
+
+/// When an agent decides (REFERENCE §1.8, §9.3).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Schedule {
+    /// Every agent decides on the step's snapshot; the world applies the intents in
+    /// agent-id order (DESIGN §2).
+    #[default]
+    Simultaneous,
+    /// Agents decide one after another in id order, each on the world as the agents
+    /// before it left it (its percept taken when its turn comes, the genes of the agents
+    /// in the cell its move took it to as they stand then, intents applied at once): the
+    /// reference code.
+    Sequential,
+}
+
+/// Whose blackboard a leaf reads and writes (REFERENCE §2.2).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Blackboard {
+    /// One per agent (DESIGN §2).
+    #[default]
+    PerAgent,
+    /// One for the whole swarm, as py_trees' global `neighbourobj` key in the
+    /// reference code: what one agent sensed, the next one ticked reads.
+    Global,
+}
+
+impl Fidelity {
+    /// A distributed run can only run the defaults.
+    pub fn check_distributed(&self) -> Result<(), String> {
+        let mut bad = Vec::new();
+        if self.schedule != Schedule::Simultaneous {
+            bad.push("fidelity.schedule = \"sequential\" (an agent would have to see the moves of agents in other processes within a step)");
+        }
+        if self.blackboard != Blackboard::PerAgent {
+            bad.push("fidelity.blackboard = \"global\" (agents in separate processes share no memory)");
+        }
+        if bad.is_empty() {
+            Ok(())
+        } else {
+            Err(format!("{} runs in one process only: drop --processes, or use the defaults", bad.join(" and ")))
         }
     }
 }
@@ -516,6 +576,26 @@ mod tests {
         assert_eq!(st("algorithm = \"geese-bt\"\n"), Some(7));
         assert_eq!(st("algorithm = \"multi-geese\"\n[learner]\nst = 7\n"), Some(7));
         assert_eq!(st("[learner]\nst = 12\n"), Some(12));
+    }
+
+    /// `[fidelity]` picks the reference code's step schedule and blackboard; a bad value
+    /// names itself; a distributed run refuses anything but the defaults, naming it.
+    #[test]
+    fn fidelity_parses_and_distributed_runs_refuse_it() {
+        let c =
+            RunConfig::from_toml("[fidelity]\nschedule = \"sequential\"\nblackboard = \"global\"\n").expect("parses");
+        assert_eq!(c.fidelity, Fidelity { schedule: Schedule::Sequential, blackboard: Blackboard::Global });
+        let err = c.fidelity.check_distributed().unwrap_err();
+        assert!(err.contains("fidelity.schedule") && err.contains("fidelity.blackboard"), "{err}");
+        assert!(Fidelity::default().check_distributed().is_ok());
+        let only = Fidelity { blackboard: Blackboard::Global, ..Fidelity::default() };
+        assert!(!only.check_distributed().unwrap_err().contains("schedule"));
+        let err = RunConfig::from_toml("[fidelity]\nschedule = \"turns\"\n").unwrap_err().to_string();
+        assert!(err.contains("turns") && err.contains("sequential"), "{err}");
+        // A later stage keeps the run's fidelity.
+        let c = RunConfig::from_toml("algorithm = \"multi-geese\"\nsteps = 5\n[fidelity]\nschedule = \"sequential\"\n")
+            .expect("parses");
+        assert_eq!(c.validate().expect("valid").config.fidelity.schedule, Schedule::Sequential);
     }
 
     /// A combine phase and a fixed test choose their own percept reach (1: their trees act

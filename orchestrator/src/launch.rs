@@ -494,6 +494,7 @@ async fn run_net_async(
     mut observe: impl FnMut(&NetReport, &mut Swarm),
 ) -> Result<NetOutcome, LaunchError> {
     let launched = Instant::now();
+    spec.config.fidelity.check_distributed().map_err(LaunchError::Invalid)?;
     let bin_dir = find_bin_dir(opts.bin_dir.as_deref())?;
     let opened = match &opts.security {
         Security::Dir(d) => Some(Secrets::open(d).map_err(|e| LaunchError::Invalid(e.to_string()))?),

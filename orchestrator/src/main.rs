@@ -147,6 +147,14 @@ struct RunArgs {
     /// Switch lateral transfer off for the whole run.
     #[arg(long)]
     no_lateral_transfer: bool,
+    /// Step schedule: simultaneous (DESIGN §2) or sequential (the reference code's
+    /// turns in id order; in one process only).
+    #[arg(long, value_enum)]
+    schedule: Option<geese_orchestrator::config::Schedule>,
+    /// Blackboard scope: per-agent (DESIGN §2) or global (the reference code's one
+    /// shared map; in one process only).
+    #[arg(long, value_enum)]
+    blackboard: Option<geese_orchestrator::config::Blackboard>,
     /// Count the locality map (Fig. 5) over steps FROM to TO, both included (step 1 is
     /// the first step) into locality.csv; draw it with `geese locality`.
     #[arg(long, value_name = "FROM:TO")]
@@ -244,6 +252,12 @@ impl RunArgs {
         }
         if self.no_lateral_transfer {
             c.lateral_transfer = false;
+        }
+        if let Some(v) = self.schedule {
+            c.fidelity.schedule = v;
+        }
+        if let Some(v) = self.blackboard {
+            c.fidelity.blackboard = v;
         }
         if let Some(w) = &self.locality {
             c.locality = Some(w.clone());

@@ -5,8 +5,13 @@
 //! whose percept is read (at GS 2 an agent is registered in a 3×3 block), intents
 //! to the world, which resolves them in agent-id order. The distributed runtime drives the
 //! very same [`World`] and [`Learner`] code, which is why the two agree step for step.
-use crate::config::{task_name, RunSpec};
+//!
+//! A trial can instead follow the reference code where DESIGN §2 departs from it
+//! ([`Fidelity`]): agents taking their turns one after another on the world of the
+//! moment, and one blackboard for all. Only this loop can; a distributed run refuses it.
+use crate::config::{task_name, Blackboard, Fidelity, RunSpec, Schedule};
 use geese_agent::program::Member;
+use geese_agent::view::KindMap;
 use geese_agent::{GeneCache, Learner};
 use geese_proto::membus::Mailboxes;
 use geese_proto::rules::for_each_gene_cell;
@@ -86,6 +91,12 @@ pub struct Trial {
     gene_cache: GeneCache,
     threshold: f64,
     summary: TrialSummary,
+    fidelity: Fidelity,
+    /// The swarm's one blackboard (`fidelity.blackboard = global`), swapped into each
+    /// agent for its turn.
+    board: KindMap,
+    /// Scratch: the genes a sequential turn's cell-mates offer.
+    offers: Vec<GeneMsg>,
 }
 
 impl Trial {
@@ -117,13 +128,27 @@ impl Trial {
             gene_cache: GeneCache::new(),
             threshold: cfg.threshold,
             summary: TrialSummary::new(cfg.seed),
+            fidelity: cfg.fidelity,
+            board: KindMap::default(),
+            offers: Vec::new(),
             world,
             agents,
         })
     }
 
-    /// Run one lock-step step and return its report.
+    /// Run one step and return its report.
     pub fn step(&mut self) -> StepReport {
+        let rep = match self.fidelity.schedule {
+            Schedule::Simultaneous => self.lock_step(),
+            Schedule::Sequential => self.turns(),
+        };
+        self.record(&rep);
+        rep
+    }
+
+    /// One lock-step step (DESIGN §2), with one blackboard for all agents if `fidelity`
+    /// asks for it.
+    fn lock_step(&mut self) -> StepReport {
         let percepts = self.world.percepts();
         let geom = self.world.geometry();
         self.genes.clear();
@@ -148,12 +173,59 @@ impl Trial {
                 }
             }
         }
+        let global = self.fidelity.blackboard == Blackboard::Global;
         for ((agent, cell), slot) in self.agents.iter_mut().zip(&cells).zip(self.intents.iter_mut()) {
+            if global {
+                agent.swap_blackboard(&mut self.board);
+            }
             *slot = cell.map(|pi| agent.finish_step(self.genes.get(percepts[pi].cell), &mut self.gene_cache));
+            if global {
+                agent.swap_blackboard(&mut self.board);
+            }
         }
-        let rep = self.world.resolve(&self.intents);
-        self.record(&rep);
-        rep
+        self.world.resolve(&self.intents)
+    }
+
+    /// One step of agents taking turns in id order (REFERENCE §1.8, §9.3), with one
+    /// blackboard for all if `fidelity` asks (§2.2). Each agent reads the percept of its
+    /// cell when its turn comes, ticks, then takes the genes of the agents registered in
+    /// the cell its own moves took it to, as they stand then (agents before it may
+    /// already hold this step's new ones, REFERENCE §6.2 step 6); its intent is applied
+    /// before the next agent's turn.
+    fn turns(&mut self) -> StepReport {
+        let Trial { world, agents, gene_cache, board, offers, fidelity, .. } = self;
+        let global = fidelity.blackboard == Blackboard::Global;
+        let geom = world.geometry();
+        world.resolve_by(|w, id| {
+            let me = id as usize;
+            let percept = w.percept(geom.cell_of(w.bodies().get(me)?.pos));
+            let step = percept.step;
+            let (before, rest) = agents.split_at_mut(me);
+            let (agent, after) = rest.split_first_mut()?;
+            let _ = agent.begin_step(&percept);
+            if global {
+                agent.swap_blackboard(board);
+            }
+            // Cell-mates after the agent's own moves: those registered in that cell as
+            // the agents before it left the world (REFERENCE §6.2 step 6).
+            let offers: &mut Vec<GeneMsg> = offers;
+            let intent = agent.finish_step_with(gene_cache, |expected, cell| {
+                expected.clear();
+                expected.extend(w.agents_in(cell).filter(|a| a.id != id && a.live && a.learning).map(|a| a.id));
+                expected.sort_unstable();
+                offers.clear();
+                for &mate in expected.iter() {
+                    let m = mate as usize;
+                    let other = if m < me { before.get(m) } else { after.get(m - me - 1) };
+                    offers.extend(other.map(|a| a.offer(step)));
+                }
+                &offers[..]
+            });
+            if global {
+                agent.swap_blackboard(board);
+            }
+            Some(intent)
+        })
     }
 
     fn record(&mut self, rep: &StepReport) {
@@ -204,6 +276,62 @@ pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result
 mod tests {
     use super::*;
     use crate::config::RunConfig;
+    use geese_agent::program::{FixedMember, Program, Strategy};
+    use std::sync::Arc;
+
+    /// Two fixed agents (member i for agent i) in a foraging world with one food item at
+    /// the site, agent 0 in the site's cell and agent 1 at `one`.
+    fn pair(fidelity: Fidelity, members: [&str; 2], one: Pos) -> Trial {
+        let mut cfg = RunConfig { steps: 1, seed: 3, fidelity, ..Default::default() };
+        cfg.world.agents = 2;
+        cfg.world.items = Some(1);
+        let mut spec = cfg.validate().expect("valid");
+        let members = members.iter().map(|p| FixedMember { phenotype: (*p).into(), gene_dict: None }).collect();
+        spec.program = Arc::new(Program::Fixed { strategy: Strategy::TopAgents, members });
+        let mut t = Trial::new(&spec).expect("trial builds");
+        let site = spec.config.world.site;
+        t.world.place_agent(0, site, 0.0);
+        t.world.place_agent(1, one, 0.0);
+        t
+    }
+
+    const CARRY_THEN_EXPLORE: &str =
+        "[Sequence][Act]CompositeSingleCarry_Food[/Act][Act]Explore_0_Normal[/Act][/Sequence]";
+
+    /// Simultaneous steps: both agents see the one item and reach for it; the world gives
+    /// it to agent 0, and agent 1's move (at the pace of a carrier it is not) is refused.
+    /// Sequential turns: agent 1 looks after agent 0 has taken it, finds nothing, and its
+    /// tree stops before exploring (heading unchanged, nothing refused).
+    #[test]
+    fn sequential_turns_see_the_item_an_earlier_agent_took() {
+        let fidelity = |schedule| Fidelity { schedule, ..Fidelity::default() };
+        let site = RunConfig::default().world.site;
+        for (schedule, refused) in [(Schedule::Simultaneous, 1), (Schedule::Sequential, 0)] {
+            let mut t = pair(fidelity(schedule), [CARRY_THEN_EXPLORE; 2], site);
+            let rep = t.step();
+            let b = t.world.bodies();
+            assert_eq!((b[0].carrying.len(), b[1].carrying.len()), (1, 0), "{schedule:?}");
+            assert_eq!(rep.rejected, refused, "{schedule:?}");
+            assert_eq!(b[1].heading == 0.0, schedule == Schedule::Sequential, "{schedule:?}: agent 1's heading");
+        }
+    }
+
+    /// One blackboard for all: agent 1, far from any food, reads the food agent 0 sensed
+    /// at the site a moment before (IsCarryable reads the blackboard, REFERENCE §2.3) and
+    /// explores; with its own blackboard it knows of no food and stays put.
+    #[test]
+    fn a_global_blackboard_carries_what_one_agent_sensed_to_the_next() {
+        let sense = "[Sequence][PostCnd]NeighbourObjects_Food[/PostCnd][/Sequence]";
+        let gated = "[Sequence][PreCnd]IsCarryable_Food[/PreCnd][Act]Explore_0_Normal[/Act][/Sequence]";
+        let far = Pos::new(-35, -35);
+        for schedule in [Schedule::Simultaneous, Schedule::Sequential] {
+            for (blackboard, moves) in [(Blackboard::PerAgent, false), (Blackboard::Global, true)] {
+                let mut t = pair(Fidelity { schedule, blackboard }, [sense, gated], far);
+                t.step();
+                assert_eq!(t.world.bodies()[1].pos != far, moves, "{schedule:?}, {blackboard:?}");
+            }
+        }
+    }
 
     /// At GS 2 an agent (radius 3) is registered in a 3×3 block of cells, so a neighbour
     /// centred in the next cell is registered in the agent's own cell and shows in its

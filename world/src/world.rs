@@ -263,6 +263,11 @@ impl World {
         cells.into_iter().map(|c| self.percept(c)).collect()
     }
 
+    /// The bodies of the agents registered in `cell`, in registration order.
+    pub fn agents_in(&self, cell: CellIdx) -> impl Iterator<Item = &Body> {
+        self.cells.get(cell as usize).into_iter().flat_map(|c| c.agents.iter().map(|&id| &self.bodies[id as usize]))
+    }
+
     /// The percept of one cell.
     pub fn percept(&self, cell: CellIdx) -> Percept {
         let here = &self.cells[cell as usize];
@@ -335,6 +340,19 @@ impl World {
     /// arrive). Applies them in agent-id order, runs scheduled perturbations, advances the
     /// step counter and returns the step report.
     pub fn resolve(&mut self, intents: &[Option<Intent>]) -> StepReport {
+        self.resolve_by(|_, id| intents.get(id as usize).and_then(Option::as_ref))
+    }
+
+    /// Resolve step `self.step`, asking `next` for each live agent's intent in agent-id
+    /// order and applying it before asking for the next one: `next` sees the world as the
+    /// agents before it left it. [`World::resolve`] hands over intents decided on the
+    /// step's snapshot (simultaneous steps, DESIGN §2); an in-process trial can decide
+    /// each one in turn on the world of the moment (the reference code's sequential
+    /// step, REFERENCE §1.8, §9.3). `None` counts as a missing intent.
+    pub fn resolve_by<I: std::borrow::Borrow<Intent>>(
+        &mut self,
+        mut next: impl FnMut(&World, AgentId) -> Option<I>,
+    ) -> StepReport {
         let mut rep = StepReport { step: self.step, ..Default::default() };
         let mut lt = Vec::new();
         let mut digest = Fnv64::default();
@@ -342,10 +360,11 @@ impl World {
             if !self.bodies[id as usize].live {
                 continue;
             }
-            let Some(intent) = intents.get(id as usize).and_then(Option::as_ref) else {
+            let Some(intent) = next(self, id) else {
                 rep.missing_intents += 1;
                 continue;
             };
+            let intent: &Intent = intent.borrow();
             if intent.agent != id {
                 rep.rejected += 1;
                 continue;
@@ -690,6 +709,30 @@ mod tests {
         assert_eq!(w.perturb(Perturbation::AddObstacleAt { x: -24, y: 25, radius: 10 }), 1, "on top of the first");
         assert_eq!(w.perturb(Perturbation::AddObstacleAt { x: 0, y: 0, radius: 10 }), 1, "on the hub");
         assert_eq!(w.obstacles_unplaced(), 2);
+    }
+
+    /// `resolve_by` asks for each agent's intent only after applying the intents before
+    /// it: agent 1 sees agent 0 where agent 0 went this step (the reference's sequential
+    /// step, REFERENCE §1.8).
+    #[test]
+    fn resolve_by_shows_each_agent_the_world_the_agents_before_it_left() {
+        let mut w = world(Task::Foraging, 2);
+        let start = w.bodies()[0].pos;
+        let (to, _) = rules::destination(&w.geometry(), start, 0.0, 0);
+        assert_ne!(to, start);
+        let mut seen = None;
+        let rep = w.resolve_by(|w, id| {
+            if id == 1 {
+                seen = Some(w.bodies()[0].pos);
+            }
+            let ops = if id == 0 { vec![Op::Move { to, heading: 0.0 }] } else { Vec::new() };
+            Some(intent(w, id, 0.0, ops))
+        });
+        assert_eq!(seen, Some(to));
+        assert_eq!((rep.rejected, rep.missing_intents), (0, 0));
+        // An agent that gives no intent idles and is counted.
+        let rep = w.resolve_by(|_, _| None::<Intent>);
+        assert_eq!(rep.missing_intents, 2);
     }
 
     #[test]

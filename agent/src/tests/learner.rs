@@ -568,3 +568,46 @@ fn fixed_agents_act_but_neither_share_nor_evolve() {
         assert!(matches!(i.ops[..], [geese_proto::Op::Move { .. }]), "{:?}", i.ops);
     }
 }
+
+/// `finish_step_with` asks for the cell-mates after the tick, with the cell the agent's
+/// own move took it to (REFERENCE §6.2 step 6), and takes the genes it returns: an
+/// explorer at the east edge of its cell steps into the next one and is handed one mate
+/// there, who survives IP 1 with it (LT rate 2).
+#[test]
+fn finish_step_with_chooses_cell_mates_after_the_move() {
+    const EXPLORE: &str = "[Sequence][Act]Explore_0_Normal[/Act][/Sequence]";
+    let mut r = Rig::new(EXPLORE, cfg());
+    let g = geom();
+    let start = Pos::new(39, 35);
+    let s = Step::at(start).lt(1.0, &[]);
+    let me = AgentPublic { id: ME, pos: start, heading: 0.0, carrying: vec![], live: true, learning: true };
+    let percept = Percept {
+        step: 1,
+        cell: g.cell_of(start),
+        regime: s.regime,
+        objects: vec![],
+        nearby_impassable: vec![],
+        reach: 0,
+        area: vec![],
+        agents: vec![me],
+    };
+    assert!(r.learner.begin_step(&percept).is_some());
+    let mate = GeneMsg { step: 1, from: 7, genome: r.mate_genome.clone(), fitness: 1.0, mapping: r.mate_mapping };
+    let genes = [mate];
+    let mut asked = None;
+    let intent = r.learner.finish_step_with(&mut r.cache, |expected, cell| {
+        asked = Some(cell);
+        expected.clear();
+        expected.push(7);
+        &genes[..]
+    });
+    let moved_to = intent.ops.iter().rev().find_map(|op| match op {
+        geese_proto::Op::Move { to, .. } => Some(*to),
+        _ => None,
+    });
+    let to = moved_to.expect("the explorer moves");
+    assert_ne!(g.cell_of(to), g.cell_of(start), "the move crosses into the next cell");
+    assert_eq!(asked, Some(g.cell_of(to)));
+    assert_eq!(intent.stats.lt_rate, 2);
+    assert_eq!(intent.stats.genes_lost, 0);
+}
