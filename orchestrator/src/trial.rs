@@ -9,7 +9,7 @@
 //! A trial can instead follow the reference code where DESIGN §2 departs from it
 //! ([`Fidelity`]): agents taking their turns one after another on the world of the
 //! moment, and one blackboard for all. Only this loop can; a distributed run refuses it.
-use crate::config::{task_name, Blackboard, Fidelity, RunSpec, Schedule};
+use crate::config::{task_name, Blackboard, RunSpec, Schedule};
 use geese_agent::program::Member;
 use geese_agent::view::KindMap;
 use geese_agent::{GeneCache, Learner};
@@ -91,10 +91,10 @@ pub struct Trial {
     gene_cache: GeneCache,
     threshold: f64,
     summary: TrialSummary,
-    fidelity: Fidelity,
-    /// The swarm's one blackboard (`fidelity.blackboard = global`), swapped into each
-    /// agent for its turn.
-    board: KindMap,
+    schedule: Schedule,
+    /// The swarm's one blackboard, if it has one (`fidelity.blackboard = global`),
+    /// swapped into each agent for its tick ([`with_board`]).
+    board: Option<KindMap>,
     /// Scratch: the genes a sequential turn's cell-mates offer.
     offers: Vec<GeneMsg>,
 }
@@ -128,8 +128,8 @@ impl Trial {
             gene_cache: GeneCache::new(),
             threshold: cfg.threshold,
             summary: TrialSummary::new(cfg.seed),
-            fidelity: cfg.fidelity,
-            board: KindMap::default(),
+            schedule: cfg.fidelity.schedule,
+            board: (cfg.fidelity.blackboard == Blackboard::Global).then(KindMap::default),
             offers: Vec::new(),
             world,
             agents,
@@ -138,7 +138,7 @@ impl Trial {
 
     /// Run one step and return its report.
     pub fn step(&mut self) -> StepReport {
-        let rep = match self.fidelity.schedule {
+        let rep = match self.schedule {
             Schedule::Simultaneous => self.lock_step(),
             Schedule::Sequential => self.turns(),
         };
@@ -173,15 +173,12 @@ impl Trial {
                 }
             }
         }
-        let global = self.fidelity.blackboard == Blackboard::Global;
         for ((agent, cell), slot) in self.agents.iter_mut().zip(&cells).zip(self.intents.iter_mut()) {
-            if global {
-                agent.swap_blackboard(&mut self.board);
-            }
-            *slot = cell.map(|pi| agent.finish_step(self.genes.get(percepts[pi].cell), &mut self.gene_cache));
-            if global {
-                agent.swap_blackboard(&mut self.board);
-            }
+            *slot = cell.map(|pi| {
+                with_board(&mut self.board, agent, |a| {
+                    a.finish_step(self.genes.get(percepts[pi].cell), &mut self.gene_cache)
+                })
+            });
         }
         self.world.resolve(&self.intents)
     }
@@ -193,8 +190,7 @@ impl Trial {
     /// already hold this step's new ones, REFERENCE §6.2 step 6); its intent is applied
     /// before the next agent's turn.
     fn turns(&mut self) -> StepReport {
-        let Trial { world, agents, gene_cache, board, offers, fidelity, .. } = self;
-        let global = fidelity.blackboard == Blackboard::Global;
+        let Trial { world, agents, gene_cache, board, offers, .. } = self;
         let geom = world.geometry();
         world.resolve_by(|w, id| {
             let me = id as usize;
@@ -203,27 +199,22 @@ impl Trial {
             let (before, rest) = agents.split_at_mut(me);
             let (agent, after) = rest.split_first_mut()?;
             let _ = agent.begin_step(&percept);
-            if global {
-                agent.swap_blackboard(board);
-            }
             // Cell-mates after the agent's own moves: those registered in that cell as
             // the agents before it left the world (REFERENCE §6.2 step 6).
-            let offers: &mut Vec<GeneMsg> = offers;
-            let intent = agent.finish_step_with(gene_cache, |expected, cell| {
-                expected.clear();
-                expected.extend(w.agents_in(cell).filter(|a| a.id != id && a.live && a.learning).map(|a| a.id));
-                expected.sort_unstable();
-                offers.clear();
-                for &mate in expected.iter() {
-                    let m = mate as usize;
-                    let other = if m < me { before.get(m) } else { after.get(m - me - 1) };
-                    offers.extend(other.map(|a| a.offer(step)));
-                }
-                &offers[..]
+            let intent = with_board(board, agent, |a| {
+                a.finish_step_with(gene_cache, |expected, cell| {
+                    expected.clear();
+                    expected.extend(w.agents_in(cell).filter(|a| a.id != id && a.live && a.learning).map(|a| a.id));
+                    expected.sort_unstable();
+                    offers.clear();
+                    for &mate in expected.iter() {
+                        let m = mate as usize;
+                        let other = if m < me { before.get(m) } else { after.get(m - me - 1) };
+                        offers.extend(other.map(|a| a.offer(step)));
+                    }
+                    &offers[..]
+                })
             });
-            if global {
-                agent.swap_blackboard(board);
-            }
             Some(intent)
         })
     }
@@ -240,6 +231,16 @@ impl Trial {
     pub fn members(&self) -> Vec<Member> {
         self.agents.iter().map(Learner::member).collect()
     }
+}
+
+/// Run `f` on `agent` with the swarm's one blackboard in place of its own, if the trial
+/// has one (REFERENCE §2.2), and give the board back afterwards.
+fn with_board<T>(board: &mut Option<KindMap>, agent: &mut Learner, f: impl FnOnce(&mut Learner) -> T) -> T {
+    let Some(board) = board else { return f(agent) };
+    agent.swap_blackboard(board);
+    let out = f(agent);
+    agent.swap_blackboard(board);
+    out
 }
 
 /// Publish an agent's gene, offered from its centre `pos`, to every cell it must reach:
@@ -275,7 +276,7 @@ pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::RunConfig;
+    use crate::config::{Fidelity, RunConfig};
     use geese_agent::program::{FixedMember, Program, Strategy};
     use std::sync::Arc;
 
