@@ -8,11 +8,15 @@
 //!
 //! The order inside `finish_step` is the reference code's (§6.2): tick, visited cells,
 //! fitness, lateral transfer into the pool, genetic operators, update. Genes are copied,
-//! never shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires:
+//! not shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires:
 //! codons are immutable, so holding the sender's is as good as a copy (NOTES.md, "Shared
 //! genomes"), and a pool that reaches ST within the step only borrows them for that
 //! step's genetic step. The learners of one process share a
 //! [`GeneCache`]: scratch buffers, and the trees of adopted phenotypes.
+//!
+//! An in-process trial can instead reproduce the reference code's shared gene objects
+//! ([`Learner::share_genes`], REFERENCE §6.6): then a gene's fitness lives in a
+//! [`FitnessCell`] that every agent holding the gene reads and writes.
 use crate::bt::{Bt, BuildError, Status};
 use crate::ge::{self, Candidate, GeParams, Grammar, Individual, Member};
 use crate::program::{FitnessTerms, GeneDict, Role, StoredGene};
@@ -25,6 +29,8 @@ use geese_proto::{
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 /// Which fitness formula (REFERENCE §6.5).
@@ -201,15 +207,25 @@ fn tree_of(ind: &Individual, kind: &Kind) -> Result<Bt, BuildError> {
 /// The GeneDict update of the collect phase (REFERENCE §7.1): when the tree holds
 /// exactly one action and it succeeded this tick, store the gene under the action's
 /// class unless a fitter one is stored.
-fn store_action(dict: &mut GeneDict, tree: &Bt, gene: &Individual) {
+///
+/// With shared gene objects (`shared`) a stored gene is compared by its fitness as it
+/// stands now, and the entry takes the current gene's fitness field.
+fn store_action(dict: &mut GeneDict, shared: Option<&mut SharedGenes>, tree: &Bt, gene: &Individual) {
     let mut acts = tree.actions();
     let (Some((leaf, Status::Success)), None) = (acts.next(), acts.next()) else { return };
     let Some(key) = leaf.class_key() else { return };
-    let better = dict.get(key).is_none_or(|s| s.fitness < gene.fitness);
+    let stored_fitness = |s: &StoredGene| match &shared {
+        Some(sh) => sh.dict.get(key).map_or(s.fitness, |c| c.get()),
+        None => s.fitness,
+    };
+    let better = dict.get(key).is_none_or(|s| stored_fitness(s) < gene.fitness);
     if better {
         if let Some(p) = &gene.phenotype {
             let stored = StoredGene { phenotype: p.clone(), genome: gene.genome.clone(), fitness: gene.fitness };
             dict.insert(key.to_string(), stored);
+            if let Some(sh) = shared {
+                sh.dict.insert(key.to_string(), sh.cell.clone());
+            }
         }
     }
 }
@@ -246,6 +262,138 @@ fn params<'a>(cfg: &'a LearnerConfig, kind: &Kind) -> &'a GeParams {
     }
 }
 
+/// The fitness field of one gene object, when genes are shared objects as in the
+/// reference code (REFERENCE §6.6) rather than copies (DESIGN §2).
+///
+/// In the Python a gene is one object: an agent's pool holds references to its
+/// cell-mates' live genes, an adopter of a pool gene holds the donor's very object (and
+/// zeroes the donor's fitness when it resets its own), and a GeneDict entry keeps
+/// changing while any agent still runs the gene. Only the fitness of a gene is ever
+/// written (codons and phenotype are immutable), so sharing that one field reproduces
+/// all three. An `f64` in an atomic: learners must stay `Send`, and a trial steps them
+/// one at a time, so relaxed ordering suffices.
+#[derive(Debug, Default)]
+pub struct FitnessCell(AtomicU64);
+
+impl FitnessCell {
+    pub fn new(fitness: f64) -> Arc<FitnessCell> {
+        Arc::new(FitnessCell(AtomicU64::new(fitness.to_bits())))
+    }
+    pub fn get(&self) -> f64 {
+        f64::from_bits(self.0.load(Ordering::Relaxed))
+    }
+    pub fn set(&self, fitness: f64) {
+        self.0.store(fitness.to_bits(), Ordering::Relaxed);
+    }
+}
+
+/// A learner's side of shared gene objects ([`Learner::share_genes`]).
+struct SharedGenes {
+    /// The current gene's fitness field.
+    cell: Arc<FitnessCell>,
+    /// The fitness field of each pool entry, in pool order (`None`: a sender's gene
+    /// that came without one). A stagnation rule's fresh individuals, which no agent
+    /// holds, are the pool's last entries and have no field here.
+    pool: Vec<Option<Arc<FitnessCell>>>,
+    /// The fitness field of each GeneDict entry (collect phase).
+    dict: HashMap<String, Arc<FitnessCell>>,
+}
+
+/// A pool entry's fitness field, by the address of its codons: one allocation per gene
+/// object, as an adopted pool gene holds its donor's.
+type HeldField = (*const u32, Arc<FitnessCell>);
+
+/// Out of line and cold: the default run (copied genes) only tests for `shared` on its
+/// hot path, and pays nothing else for it.
+impl SharedGenes {
+    /// The fields of this step's joining survivors, which stay in the pool.
+    #[cold]
+    #[inline(never)]
+    fn keep_fields<G: Gene>(&mut self, genes: &[G], joining: &[Joining]) {
+        for &j in joining {
+            let cell = self.field_of(genes, j).cloned();
+            self.pool.push(cell);
+        }
+    }
+
+    /// The field of a joining survivor: this agent's own, or its sender's.
+    fn field_of<'a, G: Gene>(&'a self, genes: &'a [G], j: Joining) -> Option<&'a Arc<FitnessCell>> {
+        match j {
+            Joining::Own => Some(&self.cell),
+            Joining::Gene(i) | Joining::Mapped(_, i) => genes[i as usize].cell(),
+        }
+    }
+
+    /// Read every pool entry (the pool, then this step's joining survivors) with its
+    /// gene's fitness as it stands now, and keep the entries' fields in case one wins.
+    /// Entries no agent holds (a stagnation rule's fresh individuals, pushed after the
+    /// last kept field) keep their own fitness.
+    #[cold]
+    #[inline(never)]
+    fn read_fields<G: Gene>(&mut self, genes: &[G], joining: &[Joining], pool: &mut [Candidate]) -> Vec<HeldField> {
+        let joined = joining.iter().map(|&j| self.field_of(genes, j));
+        let kept = pool.len() - joining.len();
+        let fields = self.pool.iter().map(Option::as_ref).chain(std::iter::repeat(None)).take(kept).chain(joined);
+        let held = pool
+            .iter_mut()
+            .zip(fields)
+            .filter_map(|(c, cell)| {
+                let cell = cell?;
+                c.fitness = cell.get();
+                Some((c.genome.as_ptr(), cell.clone()))
+            })
+            .collect();
+        self.pool.clear();
+        held
+    }
+
+    /// The adopted gene's field: a pool gene that won is the donor's object (the reset
+    /// to `winner.fitness` zeroes the donor's fitness too); an offspring is a new one.
+    #[cold]
+    #[inline(never)]
+    fn adopt(&mut self, held: &[HeldField], winner: &Individual, from_pool: bool) {
+        let donor = held.iter().find(|(codons, _)| *codons == winner.genome.as_ptr());
+        let cell = match donor {
+            Some((_, cell)) if from_pool => cell.clone(),
+            _ => FitnessCell::new(0.0),
+        };
+        cell.set(winner.fitness);
+        self.cell = cell;
+    }
+}
+
+/// A cell-mate's gene together with its fitness field, as an in-process trial with
+/// shared gene objects hands it over ([`Learner::share_genes`]).
+#[derive(Clone, Debug)]
+pub struct SharedGene {
+    pub msg: GeneMsg,
+    pub cell: Option<Arc<FitnessCell>>,
+}
+
+impl Gene for SharedGene {
+    fn step(&self) -> u64 {
+        self.msg.step
+    }
+    fn sender(&self) -> AgentId {
+        self.msg.from
+    }
+    fn genome(&self) -> &[u32] {
+        &self.msg.genome
+    }
+    fn shared(&self) -> Option<&Arc<[u32]>> {
+        Some(&self.msg.genome)
+    }
+    fn fitness(&self) -> f64 {
+        self.cell.as_ref().map_or(self.msg.fitness, |c| c.get())
+    }
+    fn mapping(&self) -> GeneMapping {
+        self.msg.mapping
+    }
+    fn cell(&self) -> Option<&Arc<FitnessCell>> {
+        self.cell.as_ref()
+    }
+}
+
 /// One agent: a BeTr-GEESE, GEESE-BT or Multi-GEESE learner, or a fixed controller.
 pub struct Learner {
     id: AgentId,
@@ -277,6 +425,8 @@ pub struct Learner {
     regime: Regime,
     expected: Vec<AgentId>,
     have_percept: bool,
+    /// Shared gene objects, if the trial asked for them ([`Learner::share_genes`]).
+    shared: Option<Box<SharedGenes>>,
 }
 
 /// What the learners of one process (the in-process trial, or one agent process) share.
@@ -329,8 +479,8 @@ enum Joining {
     Own,
     /// A received gene (index into the step's genes) with the sender's mapping.
     Gene(u32),
-    /// A received gene mapped here ([`LtScratch::mapped`]).
-    Mapped(usize),
+    /// A received gene mapped here ([`LtScratch::mapped`]), and its index in the step's genes.
+    Mapped(usize, u32),
 }
 
 /// How a received gene maps.
@@ -356,6 +506,10 @@ pub trait Gene {
     fn fitness(&self) -> f64;
     /// The sender's mapping of the genome ([`GeneMsg::mapping`]).
     fn mapping(&self) -> GeneMapping;
+    /// The gene object's fitness field, when genes are shared objects ([`SharedGene`]).
+    fn cell(&self) -> Option<&Arc<FitnessCell>> {
+        None
+    }
 }
 
 impl Gene for GeneMsg {
@@ -597,10 +751,36 @@ impl Learner {
             regime: Regime::default(),
             expected: Vec::new(),
             have_percept: false,
+            shared: None,
             view,
             cfg,
             grammar,
         })
+    }
+
+    /// Hold genes as shared objects from now on, as the reference code does (REFERENCE
+    /// §6.6; `fidelity.genes = shared`): the fitness of a gene lives in one
+    /// [`FitnessCell`] that every agent holding the gene reads and writes. Pool entries
+    /// are read with their holders' current fitness at the genetic step, an adopted pool
+    /// gene is the donor's own (the adopter's reset zeroes it for both), and a GeneDict
+    /// entry follows its gene's fitness. Only a trial that steps all learners in one
+    /// process can offer it: cell-mates' genes must come as [`SharedGene`]s, with the
+    /// fields of [`Learner::gene_cell`]. A fixed agent holds no gene, and is unchanged.
+    pub fn share_genes(&mut self) {
+        if self.is_fixed() || self.shared.is_some() {
+            return;
+        }
+        let dict = match &self.kind {
+            Kind::Collect(d) => d.iter().map(|(k, g)| (k.clone(), FitnessCell::new(g.fitness))).collect(),
+            _ => HashMap::new(),
+        };
+        let pool = self.pool.iter().map(|g| Some(FitnessCell::new(g.fitness))).collect();
+        self.shared = Some(Box::new(SharedGenes { cell: FitnessCell::new(self.gene.fitness), pool, dict }));
+    }
+
+    /// The current gene's fitness field, if genes are shared objects.
+    pub fn gene_cell(&self) -> Option<&Arc<FitnessCell>> {
+        self.shared.as_ref().map(|s| &s.cell)
     }
 
     /// Is this a fixed (non-evolving) agent?
@@ -611,15 +791,23 @@ impl Learner {
     /// This agent as a population member: its phenotype, genome, fitness and (for
     /// Multi-GEESE) GeneDict.
     pub fn member(&self) -> crate::program::Member {
-        let dict = match &self.kind {
+        let mut dict = match &self.kind {
             Kind::Collect(d) => Some(d.clone()),
             Kind::Combine(d) => Some((**d).clone()),
             _ => None,
         };
+        // Shared gene objects: the fitness fields as they stand now.
+        if let (Some(d), Some(sh)) = (&mut dict, &self.shared) {
+            for (k, g) in d.iter_mut() {
+                if let Some(c) = sh.dict.get(k) {
+                    g.fitness = c.get();
+                }
+            }
+        }
         crate::program::Member {
             phenotype: self.gene.phenotype.as_deref().unwrap_or_default().to_string(),
             genome: Some(self.gene.genome.to_vec()),
-            fitness: Some(self.gene.fitness),
+            fitness: Some(self.fitness()),
             agent: Some(self.id),
             gene_dict: dict,
         }
@@ -659,7 +847,7 @@ impl Learner {
         &self.tree
     }
     pub fn fitness(&self) -> f64 {
-        self.gene.fitness
+        self.shared.as_ref().map_or(self.gene.fitness, |s| s.cell.get())
     }
 
     /// Phase 1: read the percept of the agent's cell; return the gene to publish to the
@@ -727,6 +915,10 @@ impl Learner {
         if !self.have_percept {
             return Intent { step: self.step, agent: self.id, heading: self.view.heading, ops: Vec::new(), stats };
         }
+        // A shared gene's fitness may have been written by another holder since.
+        if self.shared.is_some() {
+            self.gene.fitness = self.fitness();
+        }
         // 1–2. age, act.
         self.age += 1;
         self.tree.tick(&mut self.view, &mut self.rng_bt);
@@ -738,9 +930,12 @@ impl Learner {
         if self.is_fixed() {
             return self.intent(stats);
         }
+        if let Some(sh) = &self.shared {
+            sh.cell.set(self.gene.fitness);
+        }
         // 5. Multi-GEESE collect: the GeneDict update.
         if let Kind::Collect(dict) = &mut self.kind {
-            store_action(dict, &self.tree, &self.gene);
+            store_action(dict, self.shared.as_deref_mut(), &self.tree, &self.gene);
         }
         // 6. sense: lateral transfer through the IP filter; its survivors join the pool
         //    (`cache.lt.joining`).
@@ -899,7 +1094,7 @@ impl Learner {
                             Received::Mapped(mut ind) => {
                                 ind.fitness = g.fitness();
                                 mapped.push(ind);
-                                Joining::Mapped(mapped.len() - 1)
+                                Joining::Mapped(mapped.len() - 1, i)
                             }
                         }
                     }
@@ -913,11 +1108,14 @@ impl Learner {
     /// Put this step's joining survivors in the pool for good (the pool stays below ST).
     fn keep_joining<G: Gene>(&mut self, genes: &[G], cache: &mut GeneCache) {
         let LtScratch { joining, mapped, .. } = &mut cache.lt;
+        if let Some(sh) = &mut self.shared {
+            sh.keep_fields(genes, joining);
+        }
         for j in joining.drain(..) {
             let ind = match j {
                 Joining::Own => self.gene.clone(),
                 Joining::Gene(i) => candidate(&genes[i as usize]).take(),
-                Joining::Mapped(k) => std::mem::take(&mut mapped[k]),
+                Joining::Mapped(k, _) => std::mem::take(&mut mapped[k]),
             };
             self.pool.push(ind);
         }
@@ -932,12 +1130,16 @@ impl Learner {
         pool.extend(lt.joining.iter().map(|j| match *j {
             Joining::Own => Candidate::of(&self.gene),
             Joining::Gene(i) => candidate(&genes[i as usize]),
-            Joining::Mapped(k) => Candidate::of(&lt.mapped[k]),
+            Joining::Mapped(k, _) => Candidate::of(&lt.mapped[k]),
         }));
+        let cells = match self.shared.as_deref_mut() {
+            None => Vec::new(),
+            Some(sh) => sh.read_fields(genes, &lt.joining, &mut pool),
+        };
         let p = params(&self.cfg, &self.kind);
-        let winner = ge::genetic_step_on(workspace, &self.grammar, &mut pool, p, &mut self.rng_ge).map(|(w, _)| w);
+        let step = ge::genetic_step_on(workspace, &self.grammar, &mut pool, p, &mut self.rng_ge);
         self.pool.clear();
-        let Ok(mut winner) = winner else { return };
+        let Ok((mut winner, stats)) = step else { return };
         winner.materialize(&self.grammar, p);
         let built = match &self.kind {
             Kind::Combine(_) => tree_of(&winner, &self.kind),
@@ -950,7 +1152,7 @@ impl Learner {
             tracing::warn!(agent = self.id, "adopted phenotype does not build a tree; gene kept");
             return;
         };
-        self.carry = self.gene.fitness;
+        self.carry = self.fitness();
         // D of the adopted phenotype, only where a formula reads it: parsing every
         // adopted phenotype for it cost a fifth of a BeTr-GEESE run's instructions.
         if self.terms.d || self.cfg.fitness == FitnessVariant::Paper {
@@ -960,6 +1162,9 @@ impl Learner {
             FitnessVariant::Code => 0.0,
             FitnessVariant::Paper => self.gene_d,
         };
+        if let Some(sh) = &mut self.shared {
+            sh.adopt(&cells, &winner, stats.winner_from_pool);
+        }
         self.view.delivered = 0;
         self.gene_digest = genome_digest(&winner.genome);
         self.gene = winner;

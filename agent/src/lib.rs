@@ -28,7 +28,9 @@ pub mod leaves;
 pub mod program;
 pub mod view;
 
-pub use learner::{FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig, Triggers};
+pub use learner::{
+    FitnessCell, FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig, SharedGene, Triggers,
+};
 pub use program::{Algorithm, FitnessTerms, Phase, Population, Program, Role, Strategy};
 #[cfg(test)]
 mod tests;

@@ -136,6 +136,9 @@ knobs! {
     /// Blackboard scope: per-agent (DESIGN §2) or global (the reference code's; in-process
     /// campaigns only).
     Blackboard = "blackboard": Kind::Text,
+    /// Genes: copied (DESIGN §2) or shared (the reference code's gene objects; in-process
+    /// campaigns only).
+    Genes = "genes": Kind::Text,
     /// Fraction of the live agents killed ...
     Kill = "kill": Kind::Float(0.0, 1.0),
     /// ... after this step.
@@ -339,6 +342,9 @@ impl Condition {
         if let Some(Level::Text(s)) = self.get(Knob::Blackboard) {
             c.fidelity.blackboard = value_enum(s).map_err(|e| knob_err(Knob::Blackboard, e))?;
         }
+        if let Some(Level::Text(s)) = self.get(Knob::Genes) {
+            c.fidelity.genes = value_enum(s).map_err(|e| knob_err(Knob::Genes, e))?;
+        }
         if let Some(Level::Text(s)) = self.get(Knob::Strategy) {
             c.strategy = Some(s.parse().map_err(|e: String| knob_err(Knob::Strategy, e))?);
         }
@@ -470,15 +476,23 @@ mod tests {
         assert_eq!(Knob::from_name("bogus"), None);
     }
 
-    /// `schedule` and `blackboard` set the trial's `[fidelity]`; a bad value names the
-    /// knob and the values it takes.
+    /// `schedule`, `blackboard` and `genes` set the trial's `[fidelity]`; a bad value
+    /// names the knob and the values it takes.
     #[test]
-    fn fidelity_knobs_set_the_schedule_and_blackboard() {
-        use crate::config::{Blackboard, Schedule};
+    fn fidelity_knobs_set_the_schedule_blackboard_and_genes() {
+        use crate::config::{Blackboard, Genes, Schedule};
         let text = |s: &str| Level::Text(s.into());
-        let c = cond(&[(Knob::Schedule, text("sequential")), (Knob::Blackboard, text("global"))]);
+        let c = cond(&[
+            (Knob::Schedule, text("sequential")),
+            (Knob::Blackboard, text("global")),
+            (Knob::Genes, text("shared")),
+        ]);
         let r = c.apply(&RunConfig::default(), Task::Foraging, 1, Coupling::default()).unwrap();
-        assert_eq!((r.fidelity.schedule, r.fidelity.blackboard), (Schedule::Sequential, Blackboard::Global));
+        let f = r.fidelity;
+        assert_eq!((f.schedule, f.blackboard, f.genes), (Schedule::Sequential, Blackboard::Global, Genes::Shared));
+        let bad = cond(&[(Knob::Genes, text("aliased"))]);
+        let err = bad.apply(&RunConfig::default(), Task::Foraging, 1, Coupling::default()).unwrap_err().to_string();
+        assert!(err.contains("genes") && err.contains("copied, shared"), "{err}");
         let bad = cond(&[(Knob::Schedule, text("turns"))]);
         let err = bad.apply(&RunConfig::default(), Task::Foraging, 1, Coupling::default()).unwrap_err().to_string();
         assert!(err.contains("schedule") && err.contains("simultaneous, sequential"), "{err}");

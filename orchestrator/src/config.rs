@@ -101,6 +101,7 @@ impl Default for RunConfig {
 pub struct Fidelity {
     pub schedule: Schedule,
     pub blackboard: Blackboard,
+    pub genes: Genes,
 }
 
 /// When an agent decides (REFERENCE §1.8, §9.3).
@@ -130,6 +131,19 @@ pub enum Blackboard {
     Global,
 }
 
+/// What an agent holds of a cell-mate's gene (REFERENCE §6.6).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Genes {
+    /// A copy, fitness included, as it was sent (DESIGN §2).
+    #[default]
+    Copied,
+    /// The reference code's shared objects: one fitness field per gene for every agent
+    /// holding it, read as it stands at the genetic step, zeroed for the donor too when
+    /// an adopter resets it, and followed by the GeneDict entries that hold it.
+    Shared,
+}
+
 impl Fidelity {
     /// A distributed run can only run the defaults.
     pub fn check_distributed(&self) -> Result<(), String> {
@@ -139,6 +153,9 @@ impl Fidelity {
         }
         if self.blackboard != Blackboard::PerAgent {
             bad.push("fidelity.blackboard = \"global\" (agents in separate processes share no memory)");
+        }
+        if self.genes != Genes::Copied {
+            bad.push("fidelity.genes = \"shared\" (a gene object cannot be shared across processes)");
         }
         if bad.is_empty() {
             Ok(())
@@ -578,15 +595,20 @@ mod tests {
         assert_eq!(st("[learner]\nst = 12\n"), Some(12));
     }
 
-    /// `[fidelity]` picks the reference code's step schedule and blackboard; a bad value
-    /// names itself; a distributed run refuses anything but the defaults, naming it.
+    /// `[fidelity]` picks the reference code's step schedule, blackboard and gene objects;
+    /// a bad value names itself; a distributed run refuses anything but the defaults,
+    /// naming it.
     #[test]
     fn fidelity_parses_and_distributed_runs_refuse_it() {
-        let c =
-            RunConfig::from_toml("[fidelity]\nschedule = \"sequential\"\nblackboard = \"global\"\n").expect("parses");
-        assert_eq!(c.fidelity, Fidelity { schedule: Schedule::Sequential, blackboard: Blackboard::Global });
+        let text = "[fidelity]\nschedule = \"sequential\"\nblackboard = \"global\"\ngenes = \"shared\"\n";
+        let c = RunConfig::from_toml(text).expect("parses");
+        let reference =
+            Fidelity { schedule: Schedule::Sequential, blackboard: Blackboard::Global, genes: Genes::Shared };
+        assert_eq!(c.fidelity, reference);
         let err = c.fidelity.check_distributed().unwrap_err();
-        assert!(err.contains("fidelity.schedule") && err.contains("fidelity.blackboard"), "{err}");
+        for key in ["fidelity.schedule", "fidelity.blackboard", "fidelity.genes"] {
+            assert!(err.contains(key), "{key}: {err}");
+        }
         assert!(Fidelity::default().check_distributed().is_ok());
         let only = Fidelity { blackboard: Blackboard::Global, ..Fidelity::default() };
         assert!(!only.check_distributed().unwrap_err().contains("schedule"));

@@ -155,6 +155,10 @@ struct RunArgs {
     /// shared map; in one process only).
     #[arg(long, value_enum)]
     blackboard: Option<geese_orchestrator::config::Blackboard>,
+    /// Genes a cell-mate passes on: copied (DESIGN §2) or shared (the reference code's
+    /// gene objects, one fitness field for all holders; in one process only).
+    #[arg(long, value_enum)]
+    genes: Option<geese_orchestrator::config::Genes>,
     /// Count the locality map (Fig. 5) over steps FROM to TO, both included (step 1 is
     /// the first step) into locality.csv; draw it with `geese locality`.
     #[arg(long, value_name = "FROM:TO")]
@@ -258,6 +262,9 @@ impl RunArgs {
         }
         if let Some(v) = self.blackboard {
             c.fidelity.blackboard = v;
+        }
+        if let Some(v) = self.genes {
+            c.fidelity.genes = v;
         }
         if let Some(w) = &self.locality {
             c.locality = Some(w.clone());

@@ -8,16 +8,20 @@
 //!
 //! A trial can instead follow the reference code where DESIGN §2 departs from it
 //! ([`Fidelity`]): agents taking their turns one after another on the world of the
-//! moment, and one blackboard for all. Only this loop can; a distributed run refuses it.
-use crate::config::{task_name, Blackboard, RunSpec, Schedule};
+//! moment, one blackboard for all, and genes shared as objects rather than copied. Only
+//! this loop can; a distributed run refuses it.
+//!
+//! [`Fidelity`]: crate::config::Fidelity
+use crate::config::{task_name, Blackboard, Genes, RunSpec, Schedule};
 use geese_agent::program::Member;
 use geese_agent::view::KindMap;
-use geese_agent::{GeneCache, Learner};
+use geese_agent::{FitnessCell, GeneCache, Learner, SharedGene};
 use geese_proto::membus::Mailboxes;
 use geese_proto::rules::for_each_gene_cell;
 use geese_proto::{GeneMsg, Geometry, Intent, Percept, Pos, StepReport};
 use geese_world::World;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// What a finished trial amounts to.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -95,8 +99,11 @@ pub struct Trial {
     /// The swarm's one blackboard, if it has one (`fidelity.blackboard = global`),
     /// swapped into each agent for its tick ([`with_board`]).
     board: Option<KindMap>,
-    /// Scratch: the genes a sequential turn's cell-mates offer.
-    offers: Vec<GeneMsg>,
+    /// Scratch: the genes a sequential turn's cell-mates offer, with their fitness
+    /// fields when genes are shared objects.
+    offers: Vec<SharedGene>,
+    /// Genes are shared objects (`fidelity.genes = shared`, [`Learner::share_genes`]).
+    shared_genes: bool,
 }
 
 impl Trial {
@@ -115,13 +122,19 @@ impl Trial {
         let hub = world.hub();
         let prepared =
             spec.program.prepare(task_name(cfg.world.task)).map_err(|e| SetupError::Agents(e.to_string()))?;
+        let shared_genes = cfg.fidelity.genes == Genes::Shared;
         let agents = (0..cfg.world.agents)
             .map(|id| {
                 let role = prepared.role(id, cfg.seed);
-                Learner::with_role(id, spec.learner.clone(), spec.grammar.clone(), geom, hub, cfg.seed, role)
-                    .map_err(|e| SetupError::Agents(format!("agent {id}: {e}")))
+                let mut a =
+                    Learner::with_role(id, spec.learner.clone(), spec.grammar.clone(), geom, hub, cfg.seed, role)
+                        .map_err(|e| SetupError::Agents(format!("agent {id}: {e}")))?;
+                if shared_genes {
+                    a.share_genes();
+                }
+                Ok(a)
             })
-            .collect::<Result<_, _>>()?;
+            .collect::<Result<_, SetupError>>()?;
         Ok(Trial {
             genes: Mailboxes::new(geom.cell_count()),
             intents: vec![None; cfg.world.agents as usize],
@@ -131,6 +144,7 @@ impl Trial {
             schedule: cfg.fidelity.schedule,
             board: (cfg.fidelity.blackboard == Blackboard::Global).then(KindMap::default),
             offers: Vec::new(),
+            shared_genes,
             world,
             agents,
         })
@@ -173,10 +187,16 @@ impl Trial {
                 }
             }
         }
+        // Shared gene objects: each offered gene's fitness field as its sender held it
+        // when it offered it.
+        let fields: Option<Vec<_>> =
+            self.shared_genes.then(|| self.agents.iter().map(|a| a.gene_cell().cloned()).collect());
         for ((agent, cell), slot) in self.agents.iter_mut().zip(&cells).zip(self.intents.iter_mut()) {
             *slot = cell.map(|pi| {
-                with_board(&mut self.board, agent, |a| {
-                    a.finish_step(self.genes.get(percepts[pi].cell), &mut self.gene_cache)
+                let genes = self.genes.get(percepts[pi].cell);
+                with_board(&mut self.board, agent, |a| match &fields {
+                    None => a.finish_step(genes, &mut self.gene_cache),
+                    Some(fields) => finish_holding(a, genes, fields, &mut self.gene_cache),
                 })
             });
         }
@@ -210,7 +230,7 @@ impl Trial {
                     for &mate in expected.iter() {
                         let m = mate as usize;
                         let other = if m < me { before.get(m) } else { after.get(m - me - 1) };
-                        offers.extend(other.map(|a| a.offer(step)));
+                        offers.extend(other.map(|a| SharedGene { msg: a.offer(step), cell: a.gene_cell().cloned() }));
                     }
                     &offers[..]
                 })
@@ -231,6 +251,24 @@ impl Trial {
     pub fn members(&self) -> Vec<Member> {
         self.agents.iter().map(Learner::member).collect()
     }
+}
+
+/// [`Learner::finish_step`] with the cell-mates' genes as shared gene objects: each
+/// message with its sender's fitness field (`fields`, by agent id). Out of line, so the
+/// default lock step (copied genes) keeps its own code.
+#[cold]
+#[inline(never)]
+fn finish_holding(
+    agent: &mut Learner,
+    genes: &[GeneMsg],
+    fields: &[Option<Arc<FitnessCell>>],
+    cache: &mut GeneCache,
+) -> Intent {
+    let held: Vec<SharedGene> = genes
+        .iter()
+        .map(|g| SharedGene { msg: g.clone(), cell: fields.get(g.from as usize).cloned().flatten() })
+        .collect();
+    agent.finish_step(&held, cache)
 }
 
 /// Run `f` on `agent` with the swarm's one blackboard in place of its own, if the trial
@@ -278,7 +316,6 @@ mod tests {
     use super::*;
     use crate::config::{Fidelity, RunConfig};
     use geese_agent::program::{FixedMember, Program, Strategy};
-    use std::sync::Arc;
 
     /// Two fixed agents (member i for agent i) in a foraging world with one food item at
     /// the site, agent 0 in the site's cell and agent 1 at `one`.
@@ -327,9 +364,52 @@ mod tests {
         let far = Pos::new(-35, -35);
         for schedule in [Schedule::Simultaneous, Schedule::Sequential] {
             for (blackboard, moves) in [(Blackboard::PerAgent, false), (Blackboard::Global, true)] {
-                let mut t = pair(Fidelity { schedule, blackboard }, [sense, gated], far);
+                let mut t = pair(Fidelity { schedule, blackboard, ..Fidelity::default() }, [sense, gated], far);
                 t.step();
                 assert_eq!(t.world.bodies()[1].pos != far, moves, "{schedule:?}, {blackboard:?}");
+            }
+        }
+    }
+
+    /// Shared gene objects (`fidelity.genes = shared`, REFERENCE §6.6): under either
+    /// schedule, an agent that adopted a cell-mate's gene from its pool holds the very
+    /// fitness field of the donor, so in a 100-agent run two agents come to share one
+    /// (seed 5: at step 257 with simultaneous steps, 1,852 with turns, where a mate that
+    /// already took its turn offers the gene it just adopted, at fitness 0); with copied
+    /// genes (the default) no agent holds a field at all.
+    #[test]
+    fn shared_genes_end_up_held_by_several_agents() {
+        let sharing = |t: &Trial| {
+            let cells: Vec<_> = t.agents.iter().filter_map(|a| a.gene_cell()).collect();
+            let shared = cells.iter().enumerate().any(|(i, c)| cells[..i].iter().any(|d| Arc::ptr_eq(c, d)));
+            (cells.len(), shared)
+        };
+        for schedule in [Schedule::Simultaneous, Schedule::Sequential] {
+            for (genes, steps) in [(Genes::Copied, 50), (Genes::Shared, 2_500)] {
+                let cfg = RunConfig {
+                    steps,
+                    seed: 5,
+                    fidelity: Fidelity { schedule, genes, ..Fidelity::default() },
+                    ..Default::default()
+                };
+                let agents = cfg.world.agents as usize;
+                let mut t = Trial::new(&cfg.validate().expect("valid")).expect("trial builds");
+                let mut seen = (0, false);
+                for _ in 0..steps {
+                    t.step();
+                    seen = sharing(&t);
+                    if seen.1 {
+                        break;
+                    }
+                }
+                let want = match genes {
+                    Genes::Copied => (0, false),
+                    Genes::Shared => (agents, true),
+                };
+                assert_eq!(seen, want, "{schedule:?}, {genes:?}");
+                for a in &t.agents {
+                    assert_eq!(a.member().fitness, Some(a.fitness()));
+                }
             }
         }
     }

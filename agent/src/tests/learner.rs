@@ -9,7 +9,7 @@
 use super::{geom, HUB, ME, SEED};
 use crate::ge::{self, GeParams, Grammar};
 use crate::grammars;
-use crate::learner::{FitnessVariant, GeneCache, Learner, LearnerConfig, Triggers};
+use crate::learner::{FitnessCell, FitnessVariant, GeneCache, Learner, LearnerConfig, SharedGene, Triggers};
 use crate::program::{self, FitnessTerms, GeneDict, Role, StoredGene};
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::{
@@ -98,6 +98,18 @@ impl Rig {
 
     /// One step: percept, genes of the cell-mates, intent.
     fn step(&mut self, s: &Step) -> Intent {
+        self.begin(s);
+        let genes: Vec<GeneMsg> = s.mates.iter().map(|&from| self.mate_gene(from, self.mate_genome.clone())).collect();
+        self.learner.finish_step(&genes, &mut self.cache)
+    }
+
+    /// The gene cell-mate `from` offers in this step: `genome`, fitness 1.
+    fn mate_gene(&self, from: AgentId, genome: Arc<[u32]>) -> GeneMsg {
+        GeneMsg { step: self.t, from, genome, fitness: 1.0, mapping: self.mate_mapping }
+    }
+
+    /// A step's first half: the next step's percept of `s`, read by the learner.
+    fn begin(&mut self, s: &Step) {
         self.t += 1;
         let g = geom();
         let me =
@@ -119,18 +131,6 @@ impl Rig {
         };
         self.offered = self.learner.begin_step(&percept);
         assert_eq!(self.offered.is_some(), s.regime.lateral_transfer && !self.learner.is_fixed());
-        let genes: Vec<GeneMsg> = s
-            .mates
-            .iter()
-            .map(|&from| GeneMsg {
-                step: self.t,
-                from,
-                genome: self.mate_genome.clone(),
-                fitness: 1.0,
-                mapping: self.mate_mapping,
-            })
-            .collect();
-        self.learner.finish_step(&genes, &mut self.cache)
     }
 
     /// Run `s` `n` times; the steps (1-based, of this rig) at which a genetic step ran,
@@ -610,4 +610,61 @@ fn finish_step_with_chooses_cell_mates_after_the_move() {
     assert_eq!(asked, Some(g.cell_of(to)));
     assert_eq!(intent.stats.lt_rate, 2);
     assert_eq!(intent.stats.genes_lost, 0);
+}
+
+/// Shared gene objects (REFERENCE §6.6, `Learner::share_genes`): a pool entry is read
+/// with its holder's fitness as it stands at the genetic step, not as it was when it
+/// joined; the adopted pool gene is the donor's object, so the adopter's reset zeroes
+/// the donor's fitness, and the adopter's next fitness is what the donor reads.
+///
+/// Mate 7's gene joins the pool at step 1 with fitness 1, mate 8's at step 2 with 5;
+/// mate 7's holder then reaches 1,000, which outbids 8's and every offspring's D.
+#[test]
+fn shared_genes_are_read_live_and_an_adopted_one_is_the_donors() {
+    let mut r = Rig::new(ONE_SELECTOR, cfg_st(4));
+    r.learner.share_genes();
+    let own = r.learner.gene_cell().cloned().expect("a shared gene's field");
+    let (seven, eight) = (FitnessCell::new(1.0), FitnessCell::new(5.0));
+    // Two allocations of one genome: two gene objects.
+    let codons = |g: &Arc<[u32]>| Arc::<[u32]>::from(&g[..]);
+    let (g7, g8) = (codons(&r.mate_genome), codons(&r.mate_genome));
+    let s = Step::at(cell(0)).lt(1.0, &[7]);
+    r.begin(&s);
+    let genes = [SharedGene { msg: r.mate_gene(7, g7.clone()), cell: Some(seven.clone()) }];
+    let first = r.learner.finish_step(&genes, &mut r.cache);
+    assert_eq!((first.stats.lt_rate, first.stats.genetic), (2, GeneticTrigger::None), "two in the pool");
+    assert!(approx(own.get(), 1.0), "the learner writes its fitness (B = 1) into its field");
+    seven.set(1000.0);
+    let s = Step::at(cell(0)).lt(1.0, &[8]);
+    r.begin(&s);
+    let genes = [SharedGene { msg: r.mate_gene(8, g8), cell: Some(eight.clone()) }];
+    let second = r.learner.finish_step(&genes, &mut r.cache);
+    assert_eq!(second.stats.genetic, GeneticTrigger::Storage);
+    let held = r.learner.gene_cell().expect("a shared gene's field");
+    assert!(Arc::ptr_eq(held, &seven), "the fittest by its current fitness won: mate 7's object");
+    assert_eq!(r.learner.gene().genome.as_ptr(), g7.as_ptr());
+    assert!(approx(seven.get(), 0.0), "the adopter's reset zeroed the donor");
+    assert!(approx(eight.get(), 5.0));
+    // R is the old gene's fitness as it stood at step 2 (E 0, B 1); then E 0, B 1.
+    r.step(&Step::at(cell(1)));
+    assert!(approx(seven.get(), 0.1 * 1.0 + 1.0), "adopter's 0.1·R + E + B, in the donor's field");
+    assert!(approx(r.learner.member().fitness.expect("fitness"), seven.get()));
+}
+
+/// Shared gene objects in the collect phase (§6.6, §7.1): a GeneDict entry follows the
+/// fitness of the gene it holds, and a rival gene of the same class replaces it only
+/// when it outdoes the stored gene's fitness as it stands.
+#[test]
+fn a_shared_genedict_entry_follows_its_genes_fitness() {
+    const EXPLORE: &str = "[Sequence][Act]Explore_0_Normal[/Act][/Sequence]";
+    let mut r = Rig::with_role(EXPLORE, cfg(), Role::Collect);
+    r.learner.share_genes();
+    let field = r.learner.gene_cell().cloned().expect("a shared gene's field");
+    for _ in 0..3 {
+        r.step(&Step::at(cell(0)));
+    }
+    let stored = |r: &Rig| r.learner.member().gene_dict.expect("a GeneDict")["ExploreNormal"].fitness;
+    assert!(approx(stored(&r), field.get()));
+    field.set(42.0);
+    assert!(approx(stored(&r), 42.0), "another holder's write shows in the entry");
 }
