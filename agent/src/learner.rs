@@ -214,11 +214,8 @@ fn store_action(dict: &mut GeneDict, shared: Option<&mut SharedGenes>, tree: &Bt
     let mut acts = tree.actions();
     let (Some((leaf, Status::Success)), None) = (acts.next(), acts.next()) else { return };
     let Some(key) = leaf.class_key() else { return };
-    let stored_fitness = |s: &StoredGene| match &shared {
-        Some(sh) => sh.dict.get(key).map_or(s.fitness, |c| c.get()),
-        None => s.fitness,
-    };
-    let better = dict.get(key).is_none_or(|s| stored_fitness(s) < gene.fitness);
+    let field = shared.as_ref().and_then(|sh| sh.dict.get(key));
+    let better = dict.get(key).is_none_or(|s| field.map_or(s.fitness, |c| c.get()) < gene.fitness);
     if better {
         if let Some(p) = &gene.phenotype {
             let stored = StoredGene { phenotype: p.clone(), genome: gene.genome.clone(), fitness: gene.fitness };
@@ -1132,7 +1129,7 @@ impl Learner {
             Joining::Gene(i) => candidate(&genes[i as usize]),
             Joining::Mapped(k, _) => Candidate::of(&lt.mapped[k]),
         }));
-        let cells = match self.shared.as_deref_mut() {
+        let held = match self.shared.as_deref_mut() {
             None => Vec::new(),
             Some(sh) => sh.read_fields(genes, &lt.joining, &mut pool),
         };
@@ -1163,7 +1160,7 @@ impl Learner {
             FitnessVariant::Paper => self.gene_d,
         };
         if let Some(sh) = &mut self.shared {
-            sh.adopt(&cells, &winner, stats.winner_from_pool);
+            sh.adopt(&held, &winner, stats.winner_from_pool);
         }
         self.view.delivered = 0;
         self.gene_digest = genome_digest(&winner.genome);
