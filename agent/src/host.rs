@@ -40,7 +40,7 @@ use geese_proto::net::{
 use geese_proto::rules::{for_each_gene_cell, genes_spread};
 use geese_proto::seed::{derive, Owner, Purpose};
 use geese_proto::{decode, encode, encode_sized, AgentId, CodecError, GeneMsg, Geometry, Intent, Op, Percept};
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -80,7 +80,8 @@ pub enum Input<'a> {
     HostGenes(&'a [u8]),
     /// Something that was not what its key promised (counted as hostile).
     Hostile,
-    /// A liveliness token appeared (`alive`) or went.
+    /// A liveliness token appeared (`alive`) or went. Only the world's matters: the
+    /// host stops when it goes.
     Presence { alive: bool, key: &'a str },
     /// The control plane's stop, or a signal.
     Stop,
@@ -159,7 +160,6 @@ pub struct Host {
     /// The cells of ours whose percepts list each agent of another process, for filing
     /// genes sent ahead (kept only for its buffers).
     sender_cells: SenderCells,
-    present: BTreeMap<AgentRange, u32>,
     counters: HostCounters,
     stop: bool,
     world_left: bool,
@@ -258,7 +258,6 @@ impl Host {
             unpacked: Vec::new(),
             ahead_step: 0,
             sender_cells: SenderCells::default(),
-            present: BTreeMap::new(),
             counters: HostCounters::default(),
             stop: false,
             world_left: false,
@@ -500,7 +499,6 @@ impl Host {
                     self.stop = true;
                     self.world_left = true;
                 }
-                Parsed::AgentsPresence { agents } => keys::tally(&mut self.present, agents, alive),
                 _ => {}
             },
             Input::Stop => self.stop = true,
@@ -637,17 +635,17 @@ impl Host {
         }
     }
 
-    /// Is some process speaking for agent `m` present?
-    fn is_present(&self, m: AgentId) -> bool {
-        self.present.keys().any(|r| r.contains(m))
-    }
-
-    /// The genes of every cell the pending step waits for are in (or their senders left).
+    /// The genes of every cell the pending step waits for are in.
+    ///
+    /// Only the world says a cell is complete, also when a cell-mate's process left
+    /// (its hub forgets the process and releases the cell): the world decides who is in
+    /// a step, and this process's own view of the liveliness tokens may lag behind it.
+    /// Across routers a step-1 percept can arrive before the token of a process the
+    /// world already counted; taking that process for gone lost its genes (a
+    /// three-host run once differed from the in-process run at step 1 this way).
     fn genes_complete(&self) -> bool {
         let Some(p) = &self.pending else { return true };
-        p.wait_for
-            .iter()
-            .all(|(&c, mates)| self.heard.contains(&(p.step, c)) || mates.iter().all(|&m| !self.is_present(m)))
+        p.wait_for.keys().all(|&c| self.heard.contains(&(p.step, c)))
     }
 
     /// The cells where a live agent has its centre by this step's percepts, each with

@@ -181,11 +181,12 @@ async fn member(
     let session = zenoh_bus::open(&args.zenoh, Role::Client).await?;
     let run = args.run.clone();
     let (tx, mut rx) = unbounded_channel::<Event>();
-    // Presence first: we must notice the world going away even while joining.
+    // The world's presence first: we must notice it going away even while joining.
+    // (Other processes' tokens are the world's business: it says who is in a step.)
     let t = tx.clone();
     let _presence = session
         .liveliness()
-        .declare_subscriber(keys::all_presence(&run))
+        .declare_subscriber(keys::world_presence(&run))
         .history(true)
         .callback(move |s| {
             let alive = s.kind() == SampleKind::Put;

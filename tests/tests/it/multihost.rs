@@ -344,10 +344,14 @@ fn three_hosts_in_network_namespaces_quic_mtls_acl_attack_link_cut_and_rejoin() 
     let a = std::fs::read_to_string(inproc.join("steps.csv")).expect("in-process csv");
     let b = std::fs::read_to_string(out_a.join("steps.csv")).expect("three-host csv");
     let diff = a.lines().zip(b.lines()).position(|(x, y)| x != y);
+    // The network counters of the step that differs tell a deadline (genes_late,
+    // deadline_hits) from genes never waited for or lost on the way (genes_lost).
+    let net = std::fs::read_to_string(out_a.join("net.csv")).unwrap_or_default();
     assert!(
         diff.is_none() && a.lines().count() == b.lines().count(),
-        "the three-host run differs from the in-process run from line {diff:?}: {:?}",
-        diff.map(|i| (a.lines().nth(i), b.lines().nth(i)))
+        "the three-host run differs from the in-process run from line {diff:?}: {:?}; net.csv there: {:?}",
+        diff.map(|i| (a.lines().nth(i), b.lines().nth(i))),
+        diff.map(|i| (net.lines().next(), net.lines().nth(i)))
     );
 
     // 2. Cut host 3's link from its own end (host 1 hears nothing: only the lease tells

@@ -141,11 +141,15 @@ impl Net {
         }
     }
 
-    /// Process `i` is killed: its presence goes, for the world and the others.
+    /// Process `i` is killed: its presence goes, for the world and the others (who
+    /// make nothing of it: the world's release of the cells it shared ends their wait).
+    /// The world's publisher sends the hosting processes what the hub holds for them
+    /// each time it wakes, as the shell's does.
     fn leave(&mut self, i: usize) {
         let r = self.procs[i].range;
         self.procs[i].gone = true;
-        let out = self.server.on_presence(false, &keys::agents_presence(RUN, r));
+        let mut out = self.server.on_presence(false, &keys::agents_presence(RUN, r));
+        self.server.flush_genes(&mut out);
         self.route(out);
         let now = self.now;
         for p in self.procs.iter_mut().filter(|p| !p.gone) {
@@ -412,29 +416,40 @@ fn hostile_input_to_a_host_is_counted_and_changes_nothing() {
 }
 
 #[test]
-fn cell_mates_that_leave_end_the_gene_wait_and_the_world_leaving_stops_the_host() {
+fn only_the_world_ends_a_gene_wait_for_cell_mates_that_left_and_the_world_leaving_stops_the_host() {
     let (mut net, out) = one_host(false);
     let now = net.now;
+    let (r0, r1) = (net.procs[0].range, net.procs[1].range);
     for (k, b) in &out {
         if *k == keys::tick(RUN) {
             net.procs[0].host.absorb(Input::Tick(b), now);
-        } else if *k == keys::host_percepts(RUN, AgentRange::new(0, 2).unwrap()) {
+        } else if *k == keys::host_percepts(RUN, r0) {
             net.procs[0].host.absorb(Input::HostPercepts(b), now);
         }
     }
-    let host = &mut net.procs[0].host;
     // Paper layout: all four agents at the hub, in one cell; step 1 sends no genes
-    // ahead, so process 0 publishes its genes and waits for process 1's.
-    let HostNext::Act(first) = host.next(now) else { panic!("step 1 did not begin") };
-    assert!(first.iter().any(|o| matches!(o, Out::Genes(_))));
+    // ahead, so process 0 publishes its genes and waits for process 1's, which never
+    // speaks (it is killed before it does).
+    net.procs[1].gone = true;
+    let HostNext::Act(first) = net.procs[0].host.next(now) else { panic!("step 1 did not begin") };
     assert!(!first.iter().any(|o| matches!(o, Out::Intents(_))));
-    assert!(matches!(host.next(now), HostNext::Wait(Some(_))));
-    host.absorb(
-        Input::Presence { alive: false, key: &keys::agents_presence(RUN, AgentRange::new(2, 2).unwrap()) },
-        now,
-    );
-    let HostNext::Act(outs) = host.next(now) else { panic!("the wait did not end when the mates left") };
-    assert_eq!(intents(&outs).counters.genes_late, 0);
+    let genes = first.iter().find_map(|o| if let Out::Genes(b) = o { Some(b) } else { None }).expect("genes");
+    let mut released = net.server.on_gene_bundle(&keys::agents_genes(RUN, r0), genes);
+    net.server.flush_genes(&mut released);
+    net.route(released);
+    assert!(matches!(net.procs[0].host.next(now), HostNext::Wait(Some(_))));
+    // Process 0's own view of the tokens does not end the wait: across routers it can
+    // lag behind the world's (a token not yet seen, or seen going before it came back),
+    // and only the world says who is in a step.
+    let gone = keys::agents_presence(RUN, r1);
+    net.procs[0].host.absorb(Input::Presence { alive: false, key: &gone }, now);
+    assert!(matches!(net.procs[0].host.next(now), HostNext::Wait(Some(_))), "a token alone ended the wait");
+    // The world forgets process 1 and releases the cell: the wait ends, nothing late.
+    net.leave(1);
+    let HostNext::Act(outs) = net.procs[0].host.next(now) else { panic!("the world's release did not end the wait") };
+    let b = intents(&outs);
+    assert_eq!((b.counters.genes_late, b.counters.deadline_hits), (0, 0));
+    let host = &mut net.procs[0].host;
     host.absorb(Input::Presence { alive: false, key: &keys::world_presence(RUN) }, now);
     assert!(matches!(host.next(now), HostNext::Stopped));
     assert!(host.stopped());
