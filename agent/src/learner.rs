@@ -269,7 +269,7 @@ fn params<'a>(cfg: &'a LearnerConfig, kind: &Kind) -> &'a GeParams {
 /// written (codons and phenotype are immutable), so sharing that one field reproduces
 /// all three. An `f64` in an atomic: learners must stay `Send`, and a trial steps them
 /// one at a time, so relaxed ordering suffices.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct FitnessCell(AtomicU64);
 
 impl FitnessCell {

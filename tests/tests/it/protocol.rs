@@ -75,18 +75,13 @@ impl Net {
             first += count;
             i += 1;
         }
-        // Presence: everyone sees every process (the world: cell readers too).
+        // Presence: the world sees every process (and the cell readers' tokens); the
+        // processes read only the world's token, as the agent shell subscribes to.
         for p in &procs {
             if !p.host.wide() {
                 server.on_presence(true, &keys::cells_presence(RUN, p.range));
             }
             server.on_presence(true, &keys::agents_presence(RUN, p.range));
-        }
-        let ranges: Vec<AgentRange> = procs.iter().map(|p| p.range).collect();
-        for p in &mut procs {
-            for r in &ranges {
-                p.host.absorb(Input::Presence { alive: true, key: &keys::agents_presence(RUN, *r) }, now);
-            }
         }
         Net { server, procs, reports: Vec::new(), now, finished: None, kills: Vec::new() }
     }
@@ -141,20 +136,15 @@ impl Net {
         }
     }
 
-    /// Process `i` is killed: its presence goes, for the world and the others (who
-    /// make nothing of it: the world's release of the cells it shared ends their wait).
-    /// The world's publisher sends the hosting processes what the hub holds for them
-    /// each time it wakes, as the shell's does.
+    /// Process `i` is killed: its presence goes for the world, whose release of the
+    /// cells it shared ends the others' wait. The world's publisher sends the hosting
+    /// processes what the hub holds for them each time it wakes, as the shell's does.
     fn leave(&mut self, i: usize) {
         let r = self.procs[i].range;
         self.procs[i].gone = true;
         let mut out = self.server.on_presence(false, &keys::agents_presence(RUN, r));
         self.server.flush_genes(&mut out);
         self.route(out);
-        let now = self.now;
-        for p in self.procs.iter_mut().filter(|p| !p.gone) {
-            p.host.absorb(Input::Presence { alive: false, key: &keys::agents_presence(RUN, r) }, now);
-        }
     }
 
     /// Let every process act until it waits; true if any did something.
