@@ -1,5 +1,5 @@
 //! Throughput benchmark of the simulation core: learning agent-steps per second on one
-//! thread; and (`geese bench --micro`) micro-benchmarks of one genetic step and one
+//! thread or several (`--threads`), in any arena (`--width`); and (`geese bench --micro`) micro-benchmarks of one genetic step and one
 //! mapping. A benchmark prints figures; it is not a test and asserts nothing.
 use crate::config::RunConfig;
 use crate::trial::Trial;
@@ -35,6 +35,14 @@ pub fn bench_core(cfg: RunConfig) -> anyhow::Result<BenchResult> {
         genetic_steps: t.summary().genetic_steps + t.summary().stagnation_steps,
         final_task_pct: t.summary().final_task_pct,
     })
+}
+
+/// This process's peak resident memory (VmHWM) in MiB, where Linux tells it.
+pub fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib: f64 =
+        s.lines().find_map(|l| l.strip_prefix("VmHWM:"))?.trim().trim_end_matches("kB").trim().parse().ok()?;
+    Some(kib / 1024.0)
 }
 
 /// Batches of the genetic-step micro-benchmark (the best one is reported).

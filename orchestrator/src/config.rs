@@ -14,6 +14,9 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+/// Most threads one trial may ask for.
+pub const MAX_THREADS: u32 = 1024;
+
 /// A perturbation at a given step.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -65,6 +68,11 @@ pub struct RunConfig {
     /// being the first ([`geese_world::locality`]); written to `locality.csv`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub locality: Option<String>,
+    /// Threads that step one in-process trial ([`crate::trial`]); the trajectory is the
+    /// same for every value. Unset: one (a campaign runs one trial per core); `geese run`
+    /// sets it to the machine's cores ([`RunConfig::auto_threads`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub threads: Option<u32>,
 }
 
 impl Default for RunConfig {
@@ -88,6 +96,7 @@ impl Default for RunConfig {
             perturbations: Vec::new(),
             fidelity: Fidelity::default(),
             locality: None,
+            threads: None,
         }
     }
 }
@@ -259,6 +268,46 @@ impl RunConfig {
     /// perturbations, each checked as a control command would be
     /// ([`geese_proto::Perturbation::validate`]); the world's limits are
     /// [`WorldConfig::validate`]'s.
+    /// `threads` must be at least 1, at most the agents (a thread with no agent has
+    /// nothing to decide) and at most [`MAX_THREADS`]; more than one needs DESIGN §2's
+    /// defaults, since the reference-code modes of [`Fidelity`] let one agent's step
+    /// see another's within the step.
+    fn check_threads(&self) -> Result<(), ConfigError> {
+        let Some(n) = self.threads else { return Ok(()) };
+        if n == 0 {
+            return Err(invalid("threads", "0: a trial needs at least 1 thread"));
+        }
+        if n > MAX_THREADS {
+            return Err(invalid("threads", format!("{n} exceeds the limit of {MAX_THREADS}")));
+        }
+        if n > self.world.agents.max(1) {
+            return Err(invalid(
+                "threads",
+                format!("{n} is more than the {} agents (each thread needs at least one agent)", self.world.agents),
+            ));
+        }
+        if n > 1 && self.fidelity != Fidelity::default() {
+            return Err(invalid(
+                "threads",
+                format!(
+                    "{n}: the reference-code fidelity modes (schedule, blackboard, genes) run on 1 thread, \
+                     since each agent's step there reads what the agents before it did"
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The threads `geese run` uses when none are asked for: the machine's cores, at
+    /// most one per agent, and 1 for the reference-code fidelity modes.
+    pub fn auto_threads(&self) -> u32 {
+        if self.fidelity != Fidelity::default() {
+            return 1;
+        }
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as u32;
+        cores.clamp(1, MAX_THREADS).min(self.world.agents.max(1))
+    }
+
     pub fn validate(self) -> Result<RunSpec, ConfigError> {
         if self.steps == 0 {
             return Err(invalid("steps", "must be at least 1"));
@@ -276,6 +325,7 @@ impl RunConfig {
             return Err(invalid("threshold", "must lie in [0, 100]"));
         }
         self.locality_window()?;
+        self.check_threads()?;
         let geom = self.world.validate().map_err(|geese_world::ConfigError::Invalid { field, reason }| {
             invalid(&format!("world.{field}"), reason)
         })?;

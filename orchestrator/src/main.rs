@@ -163,6 +163,11 @@ struct RunArgs {
     /// the first step) into locality.csv; draw it with `geese locality`.
     #[arg(long, value_name = "FROM:TO")]
     locality: Option<String>,
+    /// Threads stepping an in-process trial [default: the machine's cores, at most one
+    /// per agent; 1 with --schedule, --blackboard or --genes]. The results are the same
+    /// for every value.
+    #[arg(long)]
+    threads: Option<u32>,
     /// Output directory (default results/<task>-seed<seed>).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -268,6 +273,9 @@ impl RunArgs {
         }
         if let Some(w) = &self.locality {
             c.locality = Some(w.clone());
+        }
+        if let Some(n) = self.threads {
+            c.threads = Some(n);
         }
         Ok(c)
     }
@@ -398,6 +406,15 @@ struct BenchArgs {
     /// cost).
     #[arg(long, value_name = "FROM:TO")]
     locality: Option<String>,
+    /// Threads stepping the trial (its results do not depend on them).
+    #[arg(long, default_value_t = 1)]
+    threads: u32,
+    /// Arena width (default 100; 1000 keeps 10,000 agents at the default density).
+    #[arg(long)]
+    width: Option<i32>,
+    /// Arena height (default: the width).
+    #[arg(long)]
+    height: Option<i32>,
 }
 
 fn parse_genome(s: &str) -> Result<Vec<u32>> {
@@ -501,8 +518,16 @@ fn tree_of(a: &TreeArgs) -> Result<Bt> {
 }
 
 fn run_cmd(a: RunArgs) -> Result<()> {
-    let cfg = a.net.apply(a.resolve()?);
+    let mut cfg = a.net.apply(a.resolve()?);
     let mut net = a.net.options()?;
+    match (&net, cfg.threads) {
+        (Some(_), Some(n)) => bail!(
+            "--threads {n}: threads step an in-process trial; with --processes every agent process \
+             steps its own agents (drop --threads or --processes)"
+        ),
+        (None, None) => cfg.threads = Some(cfg.auto_threads()),
+        _ => {}
+    }
     if let Some(n) = net.as_mut() {
         n.view = a.view.then_some(a.view_port);
         n.step_rate = a.step_rate;
@@ -722,7 +747,13 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     let counting = a.locality.as_deref().map(|w| format!(", locality map over steps {w}")).unwrap_or_default();
-    println!("geese bench: {} learning agents, {} steps, one thread{counting}", a.agents, a.steps);
+    let width = a.width.unwrap_or(geese_world::WorldConfig::default().width);
+    let height = a.height.unwrap_or(width);
+    let threads = if a.threads == 1 { "one thread".to_string() } else { format!("{} threads", a.threads) };
+    println!(
+        "geese bench: {} learning agents, {width}x{height} arena, {} steps, {threads}{counting}",
+        a.agents, a.steps
+    );
     let mut rates = Vec::new();
     let (mut seconds, mut genetic) = (0.0, 0u64);
     for r in 0..a.repeat {
@@ -731,6 +762,9 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
         cfg.steps = a.steps;
         cfg.seed = a.seed + r as u64;
         cfg.locality = a.locality.clone();
+        cfg.threads = Some(a.threads);
+        cfg.world.width = width;
+        cfg.world.height = height;
         cfg.world.task = match a.task {
             TaskArg::Foraging => Task::Foraging,
             TaskArg::Nest => Task::Nest,
@@ -751,7 +785,12 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
         genetic += b.genetic_steps;
     }
     rates.sort_by(|x, y| x.total_cmp(y));
-    println!("median: {:.0} agent-steps/s", rates[rates.len() / 2]);
+    let median = rates[rates.len() / 2];
+    println!("median: {:.0} agent-steps/s, {:.1} steps/s", median, median / a.agents.max(1) as f64);
+    match bench::peak_rss_mib() {
+        Some(mib) => println!("peak resident memory: {mib:.1} MiB"),
+        None => println!("peak resident memory: unknown (no /proc/self/status)"),
+    }
     // How fast a run is depends on how many genetic steps its trajectory makes (pools
     // fill faster when agents crowd), so builds whose random streams differ are best
     // compared by the wall time per genetic step over many seeds.

@@ -11,6 +11,15 @@
 //! moment, one blackboard for all, and genes shared as objects rather than copied. Only
 //! this loop can; a distributed run refuses it.
 //!
+//! The decide phase of a lock step — every agent's [`Learner::begin_step`] and
+//! [`Learner::finish_step`] — runs on [`Workers`] when the trial has more than one
+//! thread (`threads`, DESIGN §11): each agent decides from the frozen start-of-step
+//! percepts and genes with its own random streams, the genes offered are published in
+//! agent-id order once every agent has offered, each worker thread keeps its own
+//! [`GeneCache`] (scratch buffers and a memo, so which thread ran an agent changes
+//! nothing), and the world applies the intents in agent-id order as before. The
+//! trajectory is therefore the same for every thread count.
+//!
 //! [`Fidelity`]: crate::config::Fidelity
 use crate::config::{task_name, Blackboard, Genes, RunSpec, Schedule};
 use geese_agent::program::Member;
@@ -20,8 +29,9 @@ use geese_proto::membus::Mailboxes;
 use geese_proto::rules::for_each_gene_cell;
 use geese_proto::{GeneMsg, Geometry, Intent, Percept, Pos, StepReport};
 use geese_world::World;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// What a finished trial amounts to.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -76,6 +86,8 @@ pub enum SetupError {
     World(#[from] geese_world::ConfigError),
     #[error("agents: {0}")]
     Agents(String),
+    #[error("threads: {0}")]
+    Threads(String),
 }
 
 /// A finished stage of a run: its summary and the population its agents ended with.
@@ -104,6 +116,33 @@ pub struct Trial {
     offers: Vec<SharedGene>,
     /// Genes are shared objects (`fidelity.genes = shared`, [`Learner::share_genes`]).
     shared_genes: bool,
+    /// The decide phase's threads, when there is more than one.
+    workers: Option<Workers>,
+}
+
+/// A thread pool for the decide phase, with one [`GeneCache`] per pool thread.
+struct Workers {
+    pool: rayon::ThreadPool,
+    /// By pool thread index; a thread only ever locks its own, so the locks are never
+    /// contended.
+    caches: Vec<Mutex<GeneCache>>,
+}
+
+impl Workers {
+    fn new(threads: usize) -> Result<Workers, SetupError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("geese-trial-{i}"))
+            .build()
+            .map_err(|e| SetupError::Threads(format!("cannot start {threads} threads: {e}")))?;
+        Ok(Workers { pool, caches: (0..threads).map(|_| Mutex::new(GeneCache::new())).collect() })
+    }
+
+    /// Agents per unit of work: a few units per thread, so that threads whose agents
+    /// ran genetic steps are evened out by the others taking more units.
+    fn chunk(&self, agents: usize) -> usize {
+        agents.div_ceil(self.caches.len() * 8).max(1)
+    }
 }
 
 impl Trial {
@@ -135,6 +174,9 @@ impl Trial {
                 Ok(a)
             })
             .collect::<Result<_, SetupError>>()?;
+        // A follow-up stage may have fewer agents than the run's threads.
+        let threads = cfg.threads.unwrap_or(1).clamp(1, cfg.world.agents.max(1)) as usize;
+        let workers = if threads > 1 { Some(Workers::new(threads)?) } else { None };
         Ok(Trial {
             genes: Mailboxes::new(geom.cell_count()),
             intents: vec![None; cfg.world.agents as usize],
@@ -145,6 +187,7 @@ impl Trial {
             board: (cfg.fidelity.blackboard == Blackboard::Global).then(KindMap::default),
             offers: Vec::new(),
             shared_genes,
+            workers,
             world,
             agents,
         })
@@ -163,6 +206,9 @@ impl Trial {
     /// One lock-step step (DESIGN §2), with one blackboard for all agents if `fidelity`
     /// asks for it.
     fn lock_step(&mut self) -> StepReport {
+        if self.workers.is_some() {
+            return self.parallel_lock_step();
+        }
         let percepts = self.world.percepts();
         let geom = self.world.geometry();
         self.genes.clear();
@@ -201,6 +247,53 @@ impl Trial {
             });
         }
         self.world.resolve(&self.intents)
+    }
+
+    /// [`Trial::lock_step`] with the decide phase on the [`Workers`]: the same inputs to
+    /// every agent and the same order of publication, so the same step.
+    fn parallel_lock_step(&mut self) -> StepReport {
+        let Trial { world, agents, genes, intents, workers, .. } = self;
+        let Some(w) = workers else { unreachable!("parallel_lock_step runs only with workers") };
+        let geom = world.geometry();
+        let percepts: Vec<Percept> =
+            w.pool.install(|| world.occupied_cells().par_iter().map(|&c| world.percept(c)).collect());
+        genes.clear();
+        let cell_of = |b: &geese_world::world::Body| {
+            if b.live {
+                percepts.binary_search_by_key(&geom.cell_of(b.pos), |p| p.cell).ok()
+            } else {
+                None
+            }
+        };
+        let cells: Vec<Option<usize>> = world.bodies().iter().map(cell_of).collect();
+        let chunk = w.chunk(agents.len());
+        let offers: Vec<Option<GeneMsg>> = w.pool.install(|| {
+            agents
+                .par_iter_mut()
+                .with_min_len(chunk)
+                .zip(cells.par_iter())
+                .map(|(agent, cell)| cell.and_then(|pi| agent.begin_step(&percepts[pi])))
+                .collect()
+        });
+        // Published in agent-id order, as the one-thread loop does.
+        for (offer, body) in offers.into_iter().zip(world.bodies()) {
+            if let Some(g) = offer {
+                publish_gene(genes, &geom, body.pos, &percepts, g);
+            }
+        }
+        let (genes, caches) = (&*genes, &w.caches);
+        w.pool.install(|| {
+            agents.par_chunks_mut(chunk).zip(intents.par_chunks_mut(chunk)).zip(cells.par_chunks(chunk)).for_each(
+                |((agents, slots), cells)| {
+                    let me = rayon::current_thread_index().unwrap_or(0);
+                    let mut cache = caches[me].lock().unwrap_or_else(|e| e.into_inner());
+                    for ((agent, slot), cell) in agents.iter_mut().zip(slots).zip(cells) {
+                        *slot = cell.map(|pi| agent.finish_step(genes.get(percepts[pi].cell), &mut cache));
+                    }
+                },
+            )
+        });
+        world.resolve(intents)
     }
 
     /// One step of agents taking turns in id order (REFERENCE §1.8, §9.3), with one

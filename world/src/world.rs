@@ -257,10 +257,16 @@ impl World {
     /// The percepts of step `self.step`, one per cell holding a live agent's centre,
     /// in cell order.
     pub fn percepts(&self) -> Vec<Percept> {
+        self.occupied_cells().into_iter().map(|c| self.percept(c)).collect()
+    }
+
+    /// The cells a live agent is in, ascending: those [`World::percepts`] describes, for
+    /// a caller that builds their percepts on several threads.
+    pub fn occupied_cells(&self) -> Vec<CellIdx> {
         let mut cells: Vec<CellIdx> = self.bodies.iter().filter(|b| b.live).map(|b| self.geom.cell_of(b.pos)).collect();
         cells.sort_unstable();
         cells.dedup();
-        cells.into_iter().map(|c| self.percept(c)).collect()
+        cells
     }
 
     /// The bodies of the agents registered in `cell`, in registration order.

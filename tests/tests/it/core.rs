@@ -28,6 +28,46 @@ fn same_seed_same_trajectory_other_seed_other_trajectory() {
     assert_ne!(a.iter().map(|r| r.digest).collect::<Vec<_>>(), c.iter().map(|r| r.digest).collect::<Vec<_>>());
 }
 
+/// Issue 29: one trial on several threads steps exactly as on one, for every
+/// algorithm, a fixed population, and a crowded arena where every agent runs a genetic
+/// step every step (the work is then spread most unevenly over the threads).
+#[test]
+fn a_trial_steps_the_same_on_1_2_and_4_threads() {
+    use geese_agent::program::{Algorithm, Phase};
+    let on = |mut c: RunConfig, threads: u32| {
+        c.threads = Some(threads);
+        reports(c)
+    };
+    let mut cases = vec![small(Task::Foraging, 5, 100, 300), small(Task::Nest, 6, 60, 200)];
+    let mut crowd = small(Task::Foraging, 7, 1500, 12);
+    crowd.world.width = 80;
+    crowd.world.height = 80;
+    cases.push(crowd);
+    for algorithm in [Algorithm::GeeseBt, Algorithm::MultiGeese] {
+        let mut c = small(Task::Foraging, 8, 40, 250);
+        c.algorithm = algorithm;
+        if algorithm == Algorithm::MultiGeese {
+            c.phase = Some(Phase::Collect);
+        }
+        cases.push(c);
+    }
+    let mut lossy = small(Task::Foraging, 9, 50, 200);
+    lossy.gene_loss = 0.3;
+    lossy.perturbations =
+        vec![geese_orchestrator::config::Scheduled { at: 100, change: geese_proto::Perturbation::KillFraction(0.3) }];
+    cases.push(lossy);
+    for c in cases {
+        let one = on(c.clone(), 1);
+        assert!(one.iter().any(|r| r.genetic_steps > 0), "no genetic step: the case checks nothing");
+        for threads in [2, 4] {
+            let many = on(c.clone(), threads);
+            let first = one.iter().zip(&many).position(|(a, b)| a != b);
+            assert!(first.is_none(), "{threads} threads differ from 1 at step {:?} ({:?})", first.map(|i| i + 1), c);
+            assert_eq!(one.len(), many.len());
+        }
+    }
+}
+
 #[test]
 fn learning_happens_and_lateral_transfer_switch_works() {
     let on = reports(small(Task::Foraging, 3, 100, 400));
@@ -202,6 +242,14 @@ fn cli_rejects_bad_input_with_a_named_error() {
     assert!(!ok && err.contains("agents"), "{err}");
     let (ok, _, err) = geese(&["run", "--task", "flying", "--steps", "1"]);
     assert!(!ok && err.contains("flying"), "{err}");
+    let (ok, _, err) = geese(&["run", "--threads", "0", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("threads: 0"), "{err}");
+    let (ok, _, err) = geese(&["run", "--threads", "5", "--agents", "4", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("threads: 5 is more than the 4 agents"), "{err}");
+    let (ok, _, err) = geese(&["run", "--threads", "2", "--schedule", "sequential", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("threads: 2") && err.contains("1 thread"), "{err}");
+    let (ok, _, err) = geese(&["run", "--threads", "2", "--processes", "2", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("--threads 2") && err.contains("--processes"), "{err}");
     let dir = tempfile::tempdir().expect("tmp");
     let cfg = dir.path().join("bad.toml");
     std::fs::write(&cfg, "steps = 3\n[world]\nwidht = 100\n").expect("write");
