@@ -464,6 +464,87 @@ pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSp
     })
 }
 
+/// Resident memory of one agent process hosting one agent, MiB: measured 23.1–23.6 MiB
+/// (`geese bench-net`, 100×1 and 300×1, issue 29), rounded up.
+pub const AGENT_PROCESS_MIB: f64 = 24.0;
+/// Resident memory each further hosted agent adds, MiB (10×100: 39.8 MiB a process).
+pub const HOSTED_AGENT_MIB: f64 = 0.17;
+/// The world server's resident memory, MiB, plus what it adds per agent process.
+pub const WORLD_MIB: f64 = 64.0;
+pub const WORLD_MIB_PER_PROCESS: f64 = 0.1;
+/// Share of the available memory a launch may plan to use: the rest is left to the
+/// machine (and to the estimate's error).
+pub const MEMORY_SHARE: f64 = 0.75;
+/// Open files the launcher's side needs besides its processes': the world server holds
+/// a socket per agent process (and the launcher a few descriptors per child).
+pub const FILES_PER_PROCESS: u64 = 4;
+pub const FILES_BASE: u64 = 256;
+
+/// What this machine can hold, read before a launch starts anything: the memory the
+/// kernel says is available and the open-files limit the world server inherits. A
+/// launch that would not fit is refused with the figures, never tried: hundreds of
+/// processes that exhaust the memory take the whole machine down with them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Capacity {
+    /// `MemAvailable`, KiB (`None`: unknown, not checked).
+    pub mem_available_kib: Option<u64>,
+    /// The soft `Max open files` limit (`None`: unknown, not checked).
+    pub open_files: Option<u64>,
+}
+
+impl Capacity {
+    /// Read from `/proc` (Linux); what cannot be read is not checked.
+    pub fn of_this_machine() -> Capacity {
+        let field = |text: &str, key: &str| -> Option<u64> {
+            let line = text.lines().find(|l| l.starts_with(key))?;
+            line[key.len()..].split_whitespace().next()?.parse().ok()
+        };
+        let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
+        let limits = std::fs::read_to_string("/proc/self/limits").unwrap_or_default();
+        Capacity { mem_available_kib: field(&meminfo, "MemAvailable:"), open_files: field(&limits, "Max open files") }
+    }
+
+    /// Estimated resident memory of `processes` agent processes hosting `per` agents
+    /// each, and of the world server, MiB.
+    pub fn needed_mib(processes: u32, per: u32) -> f64 {
+        let p = f64::from(processes);
+        p * (AGENT_PROCESS_MIB + HOSTED_AGENT_MIB * f64::from(per.saturating_sub(1)))
+            + WORLD_MIB
+            + WORLD_MIB_PER_PROCESS * p
+    }
+
+    /// Whether `processes` agent processes of `per` agents fit; the error names the
+    /// value, what it needs and the limit.
+    pub fn check(&self, processes: u32, per: u32) -> Result<(), String> {
+        if let Some(avail) = self.mem_available_kib {
+            let usable = avail as f64 / 1024.0 * MEMORY_SHARE;
+            let needed = Self::needed_mib(processes, per);
+            if needed > usable {
+                let each = Self::needed_mib(1, per) - WORLD_MIB;
+                let fit = ((usable - WORLD_MIB) / each).floor().max(0.0) as u64;
+                return Err(format!(
+                    "--processes {processes}: {processes} agent processes of {per} agent(s) need about {:.1} GiB \
+                     ({each:.1} MiB each and the world server), more than {:.0} % of the {:.1} GiB this machine \
+                     has available; at most {fit} fit (host more agents per process with --agents-per-process)",
+                    needed / 1024.0,
+                    MEMORY_SHARE * 100.0,
+                    avail as f64 / 1024.0 / 1024.0,
+                ));
+            }
+        }
+        if let Some(limit) = self.open_files {
+            let needed = FILES_BASE + FILES_PER_PROCESS * u64::from(processes);
+            if needed > limit {
+                return Err(format!(
+                    "--processes {processes}: the world server would need about {needed} open files, more than \
+                     the limit of {limit} (raise it with `ulimit -n`, or use fewer processes)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Run `spec` as separate processes; `observe` sees every step report (and may kill or
 /// restart agent processes through the [`Swarm`]).
 pub fn run_net(
@@ -495,6 +576,19 @@ async fn run_net_async(
 ) -> Result<NetOutcome, LaunchError> {
     let launched = Instant::now();
     spec.config.fidelity.check_distributed().map_err(LaunchError::Invalid)?;
+    let n = spec.config.world.agents;
+    if n == 0 {
+        return Err(LaunchError::Invalid("a run needs at least one agent".into()));
+    }
+    let per = match opts.agents_per_process {
+        Some(0) => return Err(LaunchError::Invalid("--agents-per-process must be at least 1".into())),
+        Some(k) => k,
+        None => n.div_ceil(opts.processes.max(1)),
+    };
+    // Before anything starts: whether the processes fit in this machine.
+    if opts.processes > 0 {
+        Capacity::of_this_machine().check(opts.processes, per).map_err(LaunchError::Invalid)?;
+    }
     let bin_dir = find_bin_dir(opts.bin_dir.as_deref())?;
     let opened = match &opts.security {
         Security::Dir(d) => Some(Secrets::open(d).map_err(|e| LaunchError::Invalid(e.to_string()))?),
@@ -509,15 +603,6 @@ async fn run_net_async(
     if !keys::valid_run_name(&run) {
         return Err(LaunchError::Invalid(format!("run name {run:?}")));
     }
-    let n = spec.config.world.agents;
-    if n == 0 {
-        return Err(LaunchError::Invalid("a run needs at least one agent".into()));
-    }
-    let per = match opts.agents_per_process {
-        Some(0) => return Err(LaunchError::Invalid("--agents-per-process must be at least 1".into())),
-        Some(k) => k,
-        None => n.div_ceil(opts.processes.max(1)),
-    };
     // The id ranges of the agent processes launched here, as the access-control list
     // names them.
     let local = if opts.processes > 0 { Layout::even(&run, n, per).agents } else { Vec::new() };
@@ -1073,4 +1158,35 @@ pub fn router_cmd(args: RouterArgs) -> anyhow::Result<()> {
         let _ = session.close().await;
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_launch_that_does_not_fit_is_refused_with_its_figures() {
+        let gib = 1024 * 1024;
+        let m = Capacity { mem_available_kib: Some(22 * gib), open_files: Some(20_000) };
+        // 1,000 one-agent processes need ~23.5 GiB: more than 75 % of 22 GiB.
+        let e = m.check(1000, 1).unwrap_err();
+        assert!(e.contains("--processes 1000") && e.contains("22.0 GiB") && e.contains("at most 698 fit"), "{e}");
+        assert!(m.check(600, 1).is_ok());
+        // Ten processes of 100 agents each fit easily.
+        assert!(m.check(10, 100).is_ok());
+        let files = Capacity { mem_available_kib: None, open_files: Some(1024) };
+        let e = files.check(500, 1).unwrap_err();
+        assert!(e.contains("--processes 500") && e.contains("limit of 1024"), "{e}");
+        assert!(files.check(150, 1).is_ok());
+        // What cannot be read is not checked.
+        assert!(Capacity { mem_available_kib: None, open_files: None }.check(u32::MAX, 1).is_ok());
+    }
+
+    #[test]
+    fn this_machine_can_be_read() {
+        let c = Capacity::of_this_machine();
+        if cfg!(target_os = "linux") {
+            assert!(c.mem_available_kib.is_some_and(|k| k > 0) && c.open_files.is_some_and(|n| n > 0), "{c:?}");
+        }
+    }
 }

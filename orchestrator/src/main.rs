@@ -808,7 +808,20 @@ fn bench_cmd(a: BenchArgs) -> Result<()> {
 #[global_allocator]
 static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-fn main() -> Result<()> {
+/// A user's mistake (a bad value, a missing file) is a message, not a crash: printed
+/// with its causes on one line and no stack backtrace, even with `RUST_BACKTRACE` set
+/// (anyhow would print the one it captured). Panics, which are bugs, keep theirs.
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("Error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run() -> Result<()> {
     // Zenoh logs a session's configuration, password included, at debug level.
     let filter = match tracing_subscriber::EnvFilter::try_from_default_env() {
         Ok(f) => f.add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?),

@@ -96,6 +96,19 @@ fn bad_parameters_are_named() {
     assert!(c.clone().validate().unwrap_err().to_string().contains("agents"));
 }
 
+/// Issue 31: with `RUST_BACKTRACE=1` (common on developers' machines) a user error is
+/// still just its message.
+#[test]
+fn a_user_error_prints_no_backtrace_even_with_rust_backtrace_set() {
+    let bin = geese_tests::bin_path("geese-orchestrator", "geese");
+    for args in [&["run", "--ip", "2", "--steps", "1", "-q"][..], &["run", "--config", "/nonexistent.toml"]] {
+        let out = Command::new(&bin).args(args).env("RUST_BACKTRACE", "1").output().expect("run geese");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(err.starts_with("Error: ") && !err.contains("backtrace") && err.lines().count() == 1, "{err}");
+    }
+}
+
 fn geese(args: &[&str]) -> (bool, String, String) {
     // Built (or found up to date) once per test process: each `cargo build` check costs
     // about 0.4 s, and a test may run the binary several times.
@@ -248,6 +261,9 @@ fn cli_rejects_bad_input_with_a_named_error() {
     assert!(!ok && err.contains("threads: 5 is more than the 4 agents"), "{err}");
     let (ok, _, err) = geese(&["run", "--threads", "2", "--schedule", "sequential", "--steps", "1", "-q"]);
     assert!(!ok && err.contains("threads: 2") && err.contains("1 thread"), "{err}");
+    // Refused before any process starts: 100,000 agent processes fit in no machine here.
+    let (ok, _, err) = geese(&["run", "--processes", "100000", "--agents", "100000", "--steps", "1", "-q"]);
+    assert!(!ok && err.contains("--processes 100000") && err.contains("available"), "{err}");
     let (ok, _, err) = geese(&["run", "--threads", "2", "--processes", "2", "--steps", "1", "-q"]);
     assert!(!ok && err.contains("--threads 2") && err.contains("--processes"), "{err}");
     let dir = tempfile::tempdir().expect("tmp");
