@@ -164,8 +164,8 @@ struct RunArgs {
     #[arg(long, value_name = "FROM:TO")]
     locality: Option<String>,
     /// Threads stepping an in-process trial [default: the machine's cores, at most one
-    /// per agent; 1 with --schedule, --blackboard or --genes]. The results are the same
-    /// for every value.
+    /// per 200 agents; 1 with --schedule, --blackboard or --genes]. The results are the
+    /// same for every value.
     #[arg(long)]
     threads: Option<u32>,
     /// Output directory (default results/<task>-seed<seed>).

@@ -17,7 +17,7 @@
 //! percepts and genes with its own random streams, the genes offered are published in
 //! agent-id order once every agent has offered, each worker thread keeps its own
 //! [`GeneCache`] (scratch buffers and a memo, so which thread ran an agent changes
-//! nothing), and the world applies the intents in agent-id order as before. The
+//! nothing) and always steps the same range of agents, and the world applies the intents in agent-id order as before. The
 //! trajectory is therefore the same for every thread count.
 //!
 //! [`Fidelity`]: crate::config::Fidelity
@@ -121,11 +121,16 @@ pub struct Trial {
 }
 
 /// A thread pool for the decide phase, with one [`GeneCache`] per pool thread.
+///
+/// Each pool thread always steps the same contiguous range of agents
+/// ([`Workers::each`]): an agent's learner, pool and tree then stay in one core's
+/// caches from step to step. Work stealing moved agents between threads every step,
+/// and 10,000 sparse agents ran 1.3 times as fast on 2 threads as on 1, where two
+/// independent runs side by side each keep 95 % of their speed.
 struct Workers {
     pool: rayon::ThreadPool,
-    /// By pool thread index; a thread only ever locks its own, so the locks are never
-    /// contended.
-    caches: Vec<Mutex<GeneCache>>,
+    /// By pool thread index.
+    caches: Vec<GeneCache>,
 }
 
 impl Workers {
@@ -135,13 +140,28 @@ impl Workers {
             .thread_name(|i| format!("geese-trial-{i}"))
             .build()
             .map_err(|e| SetupError::Threads(format!("cannot start {threads} threads: {e}")))?;
-        Ok(Workers { pool, caches: (0..threads).map(|_| Mutex::new(GeneCache::new())).collect() })
+        Ok(Workers { pool, caches: (0..threads).map(|_| GeneCache::new()).collect() })
     }
 
-    /// Agents per unit of work: a few units per thread, so that threads whose agents
-    /// ran genetic steps are evened out by the others taking more units.
-    fn chunk(&self, agents: usize) -> usize {
-        agents.div_ceil(self.caches.len() * 8).max(1)
+    fn threads(&self) -> usize {
+        self.caches.len()
+    }
+
+    /// Agents per thread: the agents split into one contiguous range per thread.
+    fn range(&self, agents: usize) -> usize {
+        agents.div_ceil(self.threads()).max(1)
+    }
+
+    /// Run `f` once on every pool thread, thread `i` with `parts[i]` (a part per thread
+    /// at most; a thread without one does nothing).
+    fn each<T: Send>(pool: &rayon::ThreadPool, parts: impl IntoIterator<Item = T>, f: impl Fn(T) + Sync) {
+        let slots: Vec<Mutex<Option<T>>> = parts.into_iter().map(|p| Mutex::new(Some(p))).collect();
+        pool.broadcast(|ctx| {
+            let part = slots.get(ctx.index()).and_then(|s| s.lock().unwrap_or_else(|e| e.into_inner()).take());
+            if let Some(part) = part {
+                f(part);
+            }
+        });
     }
 }
 
@@ -266,33 +286,34 @@ impl Trial {
             }
         };
         let cells: Vec<Option<usize>> = world.bodies().iter().map(cell_of).collect();
-        let chunk = w.chunk(agents.len());
-        let offers: Vec<Option<GeneMsg>> = w.pool.install(|| {
-            agents
-                .par_iter_mut()
-                .with_min_len(chunk)
-                .zip(cells.par_iter())
-                .map(|(agent, cell)| cell.and_then(|pi| agent.begin_step(&percepts[pi])))
-                .collect()
-        });
+        let range = w.range(agents.len());
+        let mut offers: Vec<Option<GeneMsg>> = vec![None; agents.len()];
+        let percepts = &percepts;
+        Workers::each(
+            &w.pool,
+            agents.chunks_mut(range).zip(offers.chunks_mut(range)).zip(cells.chunks(range)),
+            |((agents, offers), cells)| {
+                for ((agent, offer), cell) in agents.iter_mut().zip(offers).zip(cells) {
+                    *offer = cell.and_then(|pi| agent.begin_step(&percepts[pi]));
+                }
+            },
+        );
         // Published in agent-id order, as the one-thread loop does.
         for (offer, body) in offers.into_iter().zip(world.bodies()) {
             if let Some(g) = offer {
-                publish_gene(genes, &geom, body.pos, &percepts, g);
+                publish_gene(genes, &geom, body.pos, percepts, g);
             }
         }
-        let (genes, caches) = (&*genes, &w.caches);
-        w.pool.install(|| {
-            agents.par_chunks_mut(chunk).zip(intents.par_chunks_mut(chunk)).zip(cells.par_chunks(chunk)).for_each(
-                |((agents, slots), cells)| {
-                    let me = rayon::current_thread_index().unwrap_or(0);
-                    let mut cache = caches[me].lock().unwrap_or_else(|e| e.into_inner());
-                    for ((agent, slot), cell) in agents.iter_mut().zip(slots).zip(cells) {
-                        *slot = cell.map(|pi| agent.finish_step(genes.get(percepts[pi].cell), &mut cache));
-                    }
-                },
-            )
-        });
+        let genes = &*genes;
+        Workers::each(
+            &w.pool,
+            agents.chunks_mut(range).zip(intents.chunks_mut(range)).zip(cells.chunks(range)).zip(w.caches.iter_mut()),
+            |(((agents, slots), cells), cache)| {
+                for ((agent, slot), cell) in agents.iter_mut().zip(slots).zip(cells) {
+                    *slot = cell.map(|pi| agent.finish_step(genes.get(percepts[pi].cell), cache));
+                }
+            },
+        );
         world.resolve(intents)
     }
 
