@@ -435,11 +435,26 @@ impl World {
             return Err(Rejection::BadHeading);
         }
         let mut refused = 0;
+        // A pick that got the next equivalent item instead of the one the agent saw
+        // (another agent took that one this step): the agent's later ops of this tick
+        // that name the item it saw mean the item it holds (issue 30). Multi-action
+        // trees only: a one-action tree has no op after its pick.
+        let mut swapped: Option<(ObjectId, ObjectId)> = None;
         for op in &intent.ops {
             let r = match *op {
                 Op::Move { to, heading } => self.apply_move(id, to, heading),
-                Op::Pick { object } => self.apply_pick(id, object),
-                Op::Drop { object } => self.apply_drop(id, object),
+                Op::Pick { object } => self.apply_pick(id, object).map(|got| {
+                    if got != object {
+                        swapped = Some((object, got));
+                    }
+                }),
+                Op::Drop { object } => {
+                    let object = match swapped {
+                        Some((saw, got)) if saw == object => got,
+                        _ => object,
+                    };
+                    self.apply_drop(id, object)
+                }
             };
             match r {
                 Ok(()) => {}
@@ -489,7 +504,9 @@ impl World {
         Ok(())
     }
 
-    fn apply_pick(&mut self, id: AgentId, object: ObjectId) -> Result<(), Rejection> {
+    /// Pick `object`, or the next item of its kind in the agent's cell if it is gone
+    /// (a race lost this step); returns the item picked.
+    fn apply_pick(&mut self, id: AgentId, object: ObjectId) -> Result<ObjectId, Rejection> {
         let o = self.objects.get(object as usize).ok_or(Rejection::NotHere(object))?;
         if !o.info.kind.carryable() {
             return Err(Rejection::NotCarryable(object));
@@ -517,7 +534,7 @@ impl World {
         }
         self.deregister_object(object);
         self.bodies[id as usize].carrying.push(object);
-        Ok(())
+        Ok(object)
     }
 
     fn apply_drop(&mut self, id: AgentId, object: ObjectId) -> Result<(), Rejection> {
@@ -859,6 +876,30 @@ mod tests {
         let rep = w.resolve(&[Some(d), None, None]);
         assert_eq!(rep.task_pct, 1.0);
         assert!(w.bodies()[0].carrying.is_empty());
+    }
+
+    /// Issue 30: an agent that saw item f, lost it to a lower id and got the next item g
+    /// instead, and then drops "f" in the same tick (a multi-action tree: pick, then
+    /// drop) drops g, as it would have in the reference's sequential step, where it
+    /// would have seen and picked g in the first place. Before, the drop was refused
+    /// (`NotCarried`) and the agent kept g.
+    #[test]
+    fn a_later_drop_of_a_lost_item_drops_the_item_picked_instead() {
+        let mut w = world(Task::Foraging, 2);
+        let site = Pos::new(30, 30);
+        let cell = w.geometry().cell_of(site);
+        let food = w.objects_in(cell).find(|o| o.kind == ObjectKind::Food).unwrap().id;
+        for id in 0..2 {
+            w.place_agent(id, site, 0.0);
+        }
+        let keep = intent(&w, 0, 0.0, vec![Op::Pick { object: food }]);
+        let pick_drop = intent(&w, 1, 0.0, vec![Op::Pick { object: food }, Op::Drop { object: food }]);
+        let before = w.objects_in(cell).filter(|o| o.kind == ObjectKind::Food).count();
+        let rep = w.resolve(&[Some(keep), Some(pick_drop)]);
+        assert_eq!(rep.rejected, 0);
+        assert_eq!(w.bodies()[0].carrying, vec![food]);
+        assert!(w.bodies()[1].carrying.is_empty(), "agent 1 dropped the item it held");
+        assert_eq!(w.objects_in(cell).filter(|o| o.kind == ObjectKind::Food).count(), before - 1);
     }
 
     #[test]
