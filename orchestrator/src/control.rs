@@ -167,7 +167,7 @@ pub fn control_cmd(args: ControlArgs) -> Result<()> {
     }
     let rt = zenoh_bus::runtime(1)?;
     rt.block_on(async move {
-        let session = zenoh_bus::open(&args.zenoh, Role::Client).await?;
+        let session = open_or_explain(&args.zenoh).await?;
         let result = async {
             let (info, _) =
                 zenoh_bus::fetch_run_info(&session, &args.run, Duration::from_millis(args.timeout_ms)).await?;
@@ -182,6 +182,51 @@ pub fn control_cmd(args: ControlArgs) -> Result<()> {
         let _ = session.close().await;
         result
     })
+}
+
+/// How long `geese control` waits for its session before saying why it has none: a
+/// router refuses a client without a login by closing the link, which Zenoh retries
+/// for 15 s and then reports as an unreachable endpoint.
+pub const OPEN_WAIT: Duration = Duration::from_secs(3);
+
+/// Open the session, or say within [`OPEN_WAIT`] why not, in the user's terms.
+async fn open_or_explain(z: &CommonArgs) -> Result<zenoh::Session> {
+    // Zenoh's own connect timeout (its open does not yield to a Tokio timeout), unless
+    // the user set one.
+    let mut quick = z.clone();
+    if !z.cfg.iter().any(|c| c.starts_with("connect/timeout_ms:")) {
+        quick.cfg.push(format!("connect/timeout_ms:{}", OPEN_WAIT.as_millis()));
+    }
+    let cause = match zenoh_bus::open(&quick, Role::Client).await {
+        Ok(s) => return Ok(s),
+        Err(e) => e.to_string(),
+    };
+    let endpoints: Vec<&String> = z.router.iter().chain(&z.connect).collect();
+    let listening: Vec<&String> = endpoints.iter().copied().filter(|e| tcp_listens(e)).collect();
+    Err(match (&z.credentials, listening.first()) {
+        (None, Some(e)) => anyhow::anyhow!(
+            "the world's router at {e} accepted the connection but refused the session: the run is \
+             authenticated (runs started by `geese run --processes N` are, unless --insecure) and this \
+             command logged in as nobody. Pass the operator credential: --credentials FILE, the file \
+             named on the launcher's line `control: geese control … --credentials FILE` ({cause})"
+        ),
+        (_, None) if !endpoints.is_empty() => anyhow::anyhow!(
+            "nothing accepts connections at {}: is the run still going, and is -e the locator the \
+             launcher printed? ({cause})",
+            endpoints.iter().map(|e| e.as_str()).collect::<Vec<_>>().join(", ")
+        ),
+        _ => anyhow::anyhow!("cannot open the zenoh session: {cause}"),
+    })
+}
+
+/// Whether a TCP listener answers at `tcp/HOST:PORT` within a second (other link kinds
+/// are not probed: `false`).
+fn tcp_listens(endpoint: &str) -> bool {
+    use std::net::ToSocketAddrs;
+    let Some(addr) = endpoint.strip_prefix("tcp/") else { return false };
+    let addr = addr.split('#').next().unwrap_or(addr);
+    let Ok(mut addrs) = addr.to_socket_addrs() else { return false };
+    addrs.any(|a| std::net::TcpStream::connect_timeout(&a, Duration::from_secs(1)).is_ok())
 }
 
 #[cfg(test)]

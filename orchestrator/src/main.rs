@@ -181,7 +181,8 @@ struct RunArgs {
     #[arg(long, default_value_t = 0, requires = "view")]
     view_port: u16,
     /// With --view: make at most this many steps per second from the start (the page
-    /// can change it; 0 = no limit).
+    /// can change it; 0 = no limit) [default: 20, so that the first look is watchable:
+    /// unpaced, a default trial ends in seconds].
     #[arg(long, requires = "view")]
     step_rate: Option<f64>,
     /// Distributed mode (issue 3): --processes N and its options.
@@ -517,6 +518,16 @@ fn tree_of(a: &TreeArgs) -> Result<Bt> {
     Bt::from_pnode(&root).map_err(|e| anyhow::anyhow!("behaviour tree: {e}"))
 }
 
+/// The pace of a viewed run when none is asked for: a default trial unpaced ends in
+/// seconds, and the page would show only its last frame.
+const VIEW_STEP_RATE: f64 = 20.0;
+
+/// The step-rate limit a run starts with: `--step-rate`, or [`VIEW_STEP_RATE`] with
+/// `--view`.
+fn view_step_rate(a: &RunArgs) -> Option<f64> {
+    a.step_rate.or(a.view.then_some(VIEW_STEP_RATE))
+}
+
 fn run_cmd(a: RunArgs) -> Result<()> {
     let mut cfg = a.net.apply(a.resolve()?);
     let mut net = a.net.options()?;
@@ -530,7 +541,7 @@ fn run_cmd(a: RunArgs) -> Result<()> {
     }
     if let Some(n) = net.as_mut() {
         n.view = a.view.then_some(a.view_port);
-        n.step_rate = a.step_rate;
+        n.step_rate = view_step_rate(&a);
     }
     let spec = cfg.validate()?;
     let c = &spec.config;
@@ -542,8 +553,11 @@ fn run_cmd(a: RunArgs) -> Result<()> {
         (false, _) => None,
         (true, Some(_)) => None,
         (true, None) => {
-            let w = geese_orchestrator::watch::Watch::start(a.view_port, a.step_rate)?;
+            let w = geese_orchestrator::watch::Watch::start(a.view_port, view_step_rate(&a))?;
             println!("view: {}", w.url());
+            if a.step_rate.is_none() {
+                println!("pace: {VIEW_STEP_RATE} steps/s while viewed (change it on the page, or --step-rate N; 0 = no limit)");
+            }
             Some(w)
         }
     };
@@ -821,14 +835,22 @@ fn main() -> std::process::ExitCode {
     }
 }
 
+/// Errors only, and none of Zenoh's (its crates log under these targets).
+const QUIET_ZENOH: &str = "error,zenoh=off,zenoh_transport=off,zenoh_link=off,zenoh_link_tcp=off,\
+    zenoh_link_quic=off,zenoh_runtime=off,zenoh_config=off,zenoh_util=off,zenoh_task=off";
+
 fn run() -> Result<()> {
     // Zenoh logs a session's configuration, password included, at debug level.
+    let cli = Cli::parse();
     let filter = match tracing_subscriber::EnvFilter::try_from_default_env() {
         Ok(f) => f.add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?),
+        // `geese control` says itself why it has no session (`control::OPEN_WAIT`):
+        // Zenoh's own retries would print five ERROR lines with source paths first.
+        Err(_) if matches!(cli.cmd, Cmd::Control(_)) => tracing_subscriber::EnvFilter::new(QUIET_ZENOH),
         Err(_) => tracing_subscriber::EnvFilter::new("error"),
     };
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
-    match Cli::parse().cmd {
+    match cli.cmd {
         Cmd::Run(a) => run_cmd(a),
         Cmd::Grammar { cmd } => grammar_cmd(cmd),
         Cmd::Bench(a) => bench_cmd(a),

@@ -123,10 +123,10 @@ pub struct Trial {
 /// A thread pool for the decide phase, with one [`GeneCache`] per pool thread.
 ///
 /// Each pool thread always steps the same contiguous range of agents
-/// ([`Workers::each`]): an agent's learner, pool and tree then stay in one core's
-/// caches from step to step. Work stealing moved agents between threads every step,
-/// and 10,000 sparse agents ran 1.3 times as fast on 2 threads as on 1, where two
-/// independent runs side by side each keep 95 % of their speed.
+/// ([`Workers::each`]), so an agent's learner, pool and tree stay in one core's caches
+/// from step to step. (Measured, it changes little: 10,000 sparse agents run 1.3 times
+/// as fast on 2 threads as on 1 either way; docs/PERFORMANCE.md says where the rest
+/// goes.)
 struct Workers {
     pool: rayon::ThreadPool,
     /// By pool thread index.

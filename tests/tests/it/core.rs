@@ -109,6 +109,21 @@ fn a_user_error_prints_no_backtrace_even_with_rust_backtrace_set() {
     }
 }
 
+/// Issue 31: `geese run --view` without `--step-rate` starts paced (20 steps/s), so a
+/// first look shows the run, not its last frame: 30 steps take at least 1.45 s.
+#[test]
+fn a_viewed_run_starts_paced() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let out = dir.path().join("r");
+    let t = std::time::Instant::now();
+    let (ok, stdout, err) =
+        geese(&["run", "--view", "--agents", "5", "--steps", "30", "-q", "--out", out.to_str().expect("utf8")]);
+    let took = t.elapsed();
+    assert!(ok, "{err}");
+    assert!(stdout.contains("pace: 20 steps/s"), "{stdout}");
+    assert!(took >= std::time::Duration::from_millis(1400), "30 steps took {took:?}: not paced");
+}
+
 fn geese(args: &[&str]) -> (bool, String, String) {
     // Built (or found up to date) once per test process: each `cargo build` check costs
     // about 0.4 s, and a test may run the binary several times.

@@ -663,6 +663,20 @@ fn geese_control_perturbs_and_stops_a_running_world() {
     while std::fs::read_to_string(&steps).map(|s| s.lines().count()).unwrap_or(0) < 50 && Instant::now() < until {
         std::thread::sleep(Duration::from_millis(100));
     }
+    // Issue 31: without the operator credential, `geese control` says within seconds
+    // that the run is authenticated and which flag and file to pass, with none of
+    // Zenoh's own log lines.
+    let t = Instant::now();
+    let out = std::process::Command::new(&geese)
+        .args(["control", "--run", &run_name, "-e", &endpoint, "pause"])
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("run geese control");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a control command without a login was accepted");
+    assert!(t.elapsed() < Duration::from_secs(10), "{:?} to refuse: {err}", t.elapsed());
+    assert!(err.contains("authenticated") && err.contains("--credentials"), "{err}");
+    assert!(!err.contains("ERROR"), "{err}");
     let control = |args: &[&str]| {
         let out = std::process::Command::new(&geese)
             .args(["control", "--run", &run_name, "-e", &endpoint, "--credentials", &credentials])
