@@ -1,5 +1,6 @@
 //! Throughput benchmark of the simulation core: learning agent-steps per second on one
-//! thread or several (`--threads`), in any arena (`--width`); and (`geese bench --micro`) micro-benchmarks of one genetic step and one
+//! thread or several (`--threads`), in any arena (`--width`); and (`geese bench
+//! --micro`) micro-benchmarks of one genetic step and one
 //! mapping. A benchmark prints figures; it is not a test and asserts nothing.
 use crate::config::RunConfig;
 use crate::trial::Trial;
@@ -39,10 +40,7 @@ pub fn bench_core(cfg: RunConfig) -> anyhow::Result<BenchResult> {
 
 /// This process's peak resident memory (VmHWM) in MiB, where Linux tells it.
 pub fn peak_rss_mib() -> Option<f64> {
-    let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let kib: f64 =
-        s.lines().find_map(|l| l.strip_prefix("VmHWM:"))?.trim().trim_end_matches("kB").trim().parse().ok()?;
-    Some(kib / 1024.0)
+    crate::launch::proc_number("/proc/self/status", "VmHWM:").map(|kib| kib as f64 / 1024.0)
 }
 
 /// Batches of the genetic-step micro-benchmark (the best one is reported).

@@ -76,7 +76,7 @@ pub struct RunConfig {
     pub locality: Option<String>,
     /// Threads that step one in-process trial ([`crate::trial`]); the trajectory is the
     /// same for every value. Unset: one (a campaign runs one trial per core); `geese run`
-    /// sets it to the machine's cores ([`RunConfig::auto_threads`]).
+    /// chooses ([`RunConfig::auto_threads`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub threads: Option<u32>,
 }
@@ -269,11 +269,6 @@ impl RunConfig {
         Regime { lateral_transfer: self.lateral_transfer, ip: self.ip, gene_loss: self.gene_loss }
     }
 
-    /// Check every value and load the grammar. Sizes have upper limits
-    /// ([`geese_proto::limits`]): at most 10,000,000 steps and 10,000 scheduled
-    /// perturbations, each checked as a control command would be
-    /// ([`geese_proto::Perturbation::validate`]); the world's limits are
-    /// [`WorldConfig::validate`]'s.
     /// `threads` must be at least 1, at most the agents (a thread with no agent has
     /// nothing to decide) and at most [`MAX_THREADS`]; more than one needs DESIGN §2's
     /// defaults, since the reference-code modes of [`Fidelity`] let one agent's step
@@ -315,6 +310,11 @@ impl RunConfig {
         cores.clamp(1, MAX_THREADS).min(self.world.agents / AGENTS_PER_AUTO_THREAD).max(1)
     }
 
+    /// Check every value and load the grammar. Sizes have upper limits
+    /// ([`geese_proto::limits`]): at most 10,000,000 steps and 10,000 scheduled
+    /// perturbations, each checked as a control command would be
+    /// ([`geese_proto::Perturbation::validate`]); the world's limits are
+    /// [`WorldConfig::validate`]'s.
     pub fn validate(self) -> Result<RunSpec, ConfigError> {
         if self.steps == 0 {
             return Err(invalid("steps", "must be at least 1"));

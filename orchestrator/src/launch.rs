@@ -298,9 +298,15 @@ impl Swarm {
 
 /// VmRSS of a process in KiB (Linux).
 pub fn rss_kib(pid: u32) -> Option<u64> {
-    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = s.lines().find(|l| l.starts_with("VmRSS:"))?;
-    line.split_whitespace().nth(1)?.parse().ok()
+    proc_number(&format!("/proc/{pid}/status"), "VmRSS:")
+}
+
+/// The first number after `key` on the line of a `/proc` file that starts with it
+/// (`VmRSS:  1234 kB`, `MemAvailable: …`, `Max open files  1024  4096  files`).
+pub fn proc_number(file: &str, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(file).ok()?;
+    let line = text.lines().find_map(|l| l.strip_prefix(key))?;
+    line.split_whitespace().next()?.parse().ok()
 }
 
 /// What a distributed run amounts to.
@@ -495,13 +501,10 @@ pub struct Capacity {
 impl Capacity {
     /// Read from `/proc` (Linux); what cannot be read is not checked.
     pub fn of_this_machine() -> Capacity {
-        let field = |text: &str, key: &str| -> Option<u64> {
-            let line = text.lines().find(|l| l.starts_with(key))?;
-            line[key.len()..].split_whitespace().next()?.parse().ok()
-        };
-        let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
-        let limits = std::fs::read_to_string("/proc/self/limits").unwrap_or_default();
-        Capacity { mem_available_kib: field(&meminfo, "MemAvailable:"), open_files: field(&limits, "Max open files") }
+        Capacity {
+            mem_available_kib: proc_number("/proc/meminfo", "MemAvailable:"),
+            open_files: proc_number("/proc/self/limits", "Max open files"),
+        }
     }
 
     /// Estimated resident memory of `processes` agent processes hosting `per` agents

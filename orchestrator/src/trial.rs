@@ -17,8 +17,9 @@
 //! percepts and genes with its own random streams, the genes offered are published in
 //! agent-id order once every agent has offered, each worker thread keeps its own
 //! [`GeneCache`] (scratch buffers and a memo, so which thread ran an agent changes
-//! nothing) and always steps the same range of agents, and the world applies the intents in agent-id order as before. The
-//! trajectory is therefore the same for every thread count.
+//! nothing) and always steps the same range of agents, and the world applies the
+//! intents in agent-id order as before. The trajectory is therefore the same for every
+//! thread count.
 //!
 //! [`Fidelity`]: crate::config::Fidelity
 use crate::config::{task_name, Blackboard, Genes, RunSpec, Schedule};
@@ -232,19 +233,7 @@ impl Trial {
         let percepts = self.world.percepts();
         let geom = self.world.geometry();
         self.genes.clear();
-        // Which percept each agent reads: the one of the cell its body is in.
-        let cells: Vec<Option<usize>> = self
-            .world
-            .bodies()
-            .iter()
-            .map(|b| {
-                if !b.live {
-                    return None;
-                }
-                let c = geom.cell_of(b.pos);
-                percepts.binary_search_by_key(&c, |p| p.cell).ok()
-            })
-            .collect();
+        let cells = percept_of_each(&self.world, &percepts);
         for ((agent, cell), body) in self.agents.iter_mut().zip(&cells).zip(self.world.bodies()) {
             if let Some(pi) = cell {
                 let p = &percepts[*pi];
@@ -278,14 +267,7 @@ impl Trial {
         let percepts: Vec<Percept> =
             w.pool.install(|| world.occupied_cells().par_iter().map(|&c| world.percept(c)).collect());
         genes.clear();
-        let cell_of = |b: &geese_world::world::Body| {
-            if b.live {
-                percepts.binary_search_by_key(&geom.cell_of(b.pos), |p| p.cell).ok()
-            } else {
-                None
-            }
-        };
-        let cells: Vec<Option<usize>> = world.bodies().iter().map(cell_of).collect();
+        let cells = percept_of_each(world, &percepts);
         let range = w.range(agents.len());
         let mut offers: Vec<Option<GeneMsg>> = vec![None; agents.len()];
         let percepts = &percepts;
@@ -365,6 +347,17 @@ impl Trial {
     pub fn members(&self) -> Vec<Member> {
         self.agents.iter().map(Learner::member).collect()
     }
+}
+
+/// Which percept each agent reads, by agent id: the index in `percepts` (sorted by
+/// cell) of the cell its body is in; `None` for a dead agent.
+fn percept_of_each(world: &World, percepts: &[Percept]) -> Vec<Option<usize>> {
+    let geom = world.geometry();
+    world
+        .bodies()
+        .iter()
+        .map(|b| b.live.then(|| percepts.binary_search_by_key(&geom.cell_of(b.pos), |p| p.cell).ok()).flatten())
+        .collect()
 }
 
 /// [`Learner::finish_step`] with the cell-mates' genes as shared gene objects: each
