@@ -320,6 +320,11 @@ impl Host {
         (id - self.range.first) as usize
     }
 
+    /// This step's deadlines: longer until the process has finished its first step.
+    fn deadlines(&self) -> geese_proto::net::Deadlines {
+        self.info.spec.deadlines.of_step(self.done == 0)
+    }
+
     /// The subscriptions a process reading cells one by one starts with.
     pub fn start(&mut self) -> Vec<Out> {
         let mut out = Vec::new();
@@ -386,7 +391,7 @@ impl Host {
                 tracing::warn!(
                     "agents {}: step {step}: {late} cell-mates' genes missing at the gene deadline ({} ms)",
                     self.range,
-                    self.info.spec.deadlines.gene_ms
+                    self.deadlines().gene_ms
                 );
                 self.counters.genes_late += late;
                 let r = self.finish(now, Vec::new());
@@ -409,7 +414,7 @@ impl Host {
                     "agents {}: step {}: percepts missing at the percept deadline ({} ms)",
                     self.range,
                     self.collecting,
-                    self.info.spec.deadlines.percept_ms
+                    self.deadlines().percept_ms
                 );
             }
             if self.all_found() || expired {
@@ -587,7 +592,7 @@ impl Host {
             self.collecting = p.step;
             self.percepts.clear();
             self.found.clear();
-            self.collect_deadline = Some(now + Duration::from_millis(self.info.spec.deadlines.percept_ms as u64));
+            self.collect_deadline = Some(now + Duration::from_millis(self.deadlines().percept_ms as u64));
         }
         let cell = p.cell;
         for a in &p.agents {
@@ -814,7 +819,7 @@ impl Host {
             wait_for.insert(c, mates);
         }
         wait_for.retain(|_, mates| !mates.is_empty());
-        let deadline = now + Duration::from_millis(self.info.spec.deadlines.gene_ms as u64);
+        let deadline = now + Duration::from_millis(self.deadlines().gene_ms as u64);
         self.pending =
             Some(Pending { step: t, own: own.len(), idle, active, local, wait_for, deadline, genes_sent: now });
         if self.genes_complete() {

@@ -202,21 +202,27 @@ pub fn bench_net_cmd(args: BenchNetArgs) -> Result<()> {
             }
         }
         let Some(learn) = last else { continue };
-        let rss = &learn.agent_rss_kib;
-        let (mean, max) = if rss.is_empty() {
-            (0.0, 0.0)
-        } else {
-            (rss.iter().sum::<u64>() as f64 / rss.len() as f64, *rss.iter().max().unwrap_or(&0) as f64)
-        };
+        let (mean, max) = mean_max(&learn.agent_rss_kib);
+        let (private, _) = mean_max(&learn.agent_private_kib);
         println!(
-            "{label}: RSS per agent process {:.1} MiB mean, {:.1} MiB max ({:.2} MiB per agent); world server {:.1} MiB",
+            "{label}: RSS per agent process {:.1} MiB mean, {:.1} MiB max ({:.2} MiB per agent), {:.1} MiB of it \
+             private (the rest is code, resident once for all); world server {:.1} MiB",
             mib(mean),
             mib(max),
             mib(mean) / sc.per_process as f64,
+            mib(private),
             mib(learn.world_rss_kib.unwrap_or(0) as f64)
         );
     }
     Ok(())
+}
+
+/// Mean and maximum of some KiB figures (0, 0 for none).
+fn mean_max(kib: &[u64]) -> (f64, f64) {
+    match kib.iter().max() {
+        Some(&max) => (kib.iter().sum::<u64>() as f64 / kib.len() as f64, max as f64),
+        None => (0.0, 0.0),
+    }
 }
 
 #[cfg(test)]

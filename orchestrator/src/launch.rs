@@ -261,6 +261,15 @@ impl Swarm {
         self.agent_pids().into_iter().filter_map(rss_kib).collect()
     }
 
+    /// The private part of it (`RssAnon`, KiB): what each further process costs, as
+    /// its code's pages are resident once for all of them.
+    pub fn agent_private_kib(&self) -> Vec<u64> {
+        self.agent_pids()
+            .into_iter()
+            .filter_map(|pid| proc_number(&format!("/proc/{pid}/status"), "RssAnon:"))
+            .collect()
+    }
+
     pub fn world_rss_kib(&self) -> Option<u64> {
         self.world_pid.and_then(rss_kib)
     }
@@ -323,6 +332,8 @@ pub struct NetOutcome {
     pub wall_seconds: f64,
     /// RSS of each agent process near the end of the run (KiB).
     pub agent_rss_kib: Vec<u64>,
+    /// Its private (anonymous) part (KiB).
+    pub agent_private_kib: Vec<u64>,
     pub world_rss_kib: Option<u64>,
     pub processes: u32,
     pub agents_per_process: u32,
@@ -470,14 +481,21 @@ pub fn net_spec(spec: &RunSpec, opts: &NetOptions, run: &str) -> Result<NetRunSp
     })
 }
 
-/// Resident memory of one agent process hosting one agent, MiB: measured 23.1–23.6 MiB
-/// (`geese bench-net`, 100×1 and 300×1, issue 29), rounded up.
-pub const AGENT_PROCESS_MIB: f64 = 24.0;
-/// Resident memory each further hosted agent adds, MiB (10×100: 39.8 MiB a process).
+/// Private memory of one agent process hosting one agent, MiB: its heap, stacks and
+/// the kernel's share (page tables, socket buffers). Measured 1.8 MiB of anonymous
+/// memory a process at 300×1 and 1000×1 (issue 29: the agent uses the system
+/// allocator), doubled for what `/proc` does not show.
+pub const AGENT_PROCESS_MIB: f64 = 4.0;
+/// Code and read-only data of `geese-agent`, resident once however many processes map
+/// them (11.8–13.1 MiB of each process's RSS is these shared pages), MiB.
+pub const AGENT_SHARED_MIB: f64 = 16.0;
+/// Memory each further hosted agent adds, MiB (10×100: 20.6 MiB a process, 13 MiB of
+/// it shared code; rounded up).
 pub const HOSTED_AGENT_MIB: f64 = 0.17;
-/// The world server's resident memory, MiB, plus what it adds per agent process.
+/// The world server's resident memory, MiB, plus what it adds per agent process
+/// (145 MiB with 300 processes).
 pub const WORLD_MIB: f64 = 64.0;
-pub const WORLD_MIB_PER_PROCESS: f64 = 0.1;
+pub const WORLD_MIB_PER_PROCESS: f64 = 0.5;
 /// Share of the available memory a launch may plan to use: the rest is left to the
 /// machine (and to the estimate's error).
 pub const MEMORY_SHARE: f64 = 0.75;
@@ -507,13 +525,21 @@ impl Capacity {
         }
     }
 
-    /// Estimated resident memory of `processes` agent processes hosting `per` agents
-    /// each, and of the world server, MiB.
+    /// Estimated memory of `processes` agent processes hosting `per` agents each, and
+    /// of the world server, MiB: what the machine loses to them, so the agents' shared
+    /// code counts once.
     pub fn needed_mib(processes: u32, per: u32) -> f64 {
-        let p = f64::from(processes);
-        p * (AGENT_PROCESS_MIB + HOSTED_AGENT_MIB * f64::from(per.saturating_sub(1)))
-            + WORLD_MIB
-            + WORLD_MIB_PER_PROCESS * p
+        Self::fixed_mib() + f64::from(processes) * Self::each_mib(per)
+    }
+
+    /// What a launch costs whatever its size: the world server and the agents' code.
+    fn fixed_mib() -> f64 {
+        WORLD_MIB + AGENT_SHARED_MIB
+    }
+
+    /// What each agent process of `per` agents adds, the world's share included.
+    fn each_mib(per: u32) -> f64 {
+        AGENT_PROCESS_MIB + HOSTED_AGENT_MIB * f64::from(per.saturating_sub(1)) + WORLD_MIB_PER_PROCESS
     }
 
     /// Whether `processes` agent processes of `per` agents fit; the error names the
@@ -523,8 +549,8 @@ impl Capacity {
             let usable = avail as f64 / 1024.0 * MEMORY_SHARE;
             let needed = Self::needed_mib(processes, per);
             if needed > usable {
-                let each = Self::needed_mib(1, per) - WORLD_MIB;
-                let fit = ((usable - WORLD_MIB) / each).floor().max(0.0) as u64;
+                let each = Self::each_mib(per);
+                let fit = ((usable - Self::fixed_mib()) / each).floor().max(0.0) as u64;
                 return Err(format!(
                     "--processes {processes}: {processes} agent processes of {per} agent(s) need about {:.1} GiB \
                      ({each:.1} MiB each and the world server), more than {:.0} % of the {:.1} GiB this machine \
@@ -791,6 +817,7 @@ async fn run_net_async(
     let mut reports = 0u64;
     let mut completed = false;
     let mut agent_rss = Vec::new();
+    let mut agent_private = Vec::new();
     let mut world_rss = None;
     let rss_at = (c.steps * 9 / 10).max(1);
     let join_patience = Duration::from_millis(opts.deadlines.join_ms as u64) + Duration::from_secs(10);
@@ -848,6 +875,7 @@ async fn run_net_async(
                     summary.record(c.threshold, &r.report);
                     if r.report.step == rss_at {
                         agent_rss = swarm.agent_rss_kib();
+                        agent_private = swarm.agent_private_kib();
                         world_rss = swarm.world_rss_kib();
                     }
                     observe(&r, &mut swarm);
@@ -918,6 +946,7 @@ async fn run_net_async(
         reports,
         run_seconds,
         agent_rss_kib: agent_rss,
+        agent_private_kib: agent_private,
         world_rss_kib: world_rss,
         processes,
         agents_per_process: per,
@@ -1170,13 +1199,14 @@ mod tests {
     #[test]
     fn a_launch_that_does_not_fit_is_refused_with_its_figures() {
         let gib = 1024 * 1024;
-        let m = Capacity { mem_available_kib: Some(22 * gib), open_files: Some(20_000) };
-        // 1,000 one-agent processes need ~23.5 GiB: more than 75 % of 22 GiB.
+        let m = Capacity { mem_available_kib: Some(4 * gib), open_files: Some(20_000) };
+        // 1,000 one-agent processes need ~4.5 GiB: more than 75 % of 4 GiB.
         let e = m.check(1000, 1).unwrap_err();
-        assert!(e.contains("--processes 1000") && e.contains("22.0 GiB") && e.contains("at most 698 fit"), "{e}");
+        assert!(e.contains("--processes 1000") && e.contains("4.0 GiB") && e.contains("at most 664 fit"), "{e}");
         assert!(m.check(600, 1).is_ok());
-        // Ten processes of 100 agents each fit easily.
+        // Ten processes of 100 agents each fit easily; on 22 GiB, a thousand processes do.
         assert!(m.check(10, 100).is_ok());
+        assert!(Capacity { mem_available_kib: Some(22 * gib), ..m }.check(1000, 1).is_ok());
         let files = Capacity { mem_available_kib: None, open_files: Some(1024) };
         let e = files.check(500, 1).unwrap_err();
         assert!(e.contains("--processes 500") && e.contains("limit of 1024"), "{e}");

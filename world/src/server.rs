@@ -421,7 +421,7 @@ impl Server {
                         tracing::warn!(
                             "step {}: the intent deadline ({} ms) passed with {pending} intents missing",
                             self.world.step(),
-                            self.spec.deadlines.intent_ms
+                            deadline.saturating_duration_since(started).as_millis()
                         );
                         self.hub.trace_incomplete();
                     }
@@ -465,6 +465,7 @@ impl Server {
     fn begin_step(&mut self, now: Instant) -> Result<Released, ServerError> {
         let step = self.world.step();
         let mut out = Released::default();
+        let deadlines = self.spec.deadlines.of_step(self.steps_done == 0 || !self.revive.is_empty());
         // Between steps: revivals and control-plane perturbations.
         for id in std::mem::take(&mut self.revive) {
             if !self.spec.bare && self.world.bodies().get(id as usize).is_some_and(|b| !b.live) {
@@ -586,7 +587,7 @@ impl Server {
                 }
             }
         }
-        let deadline = now + Duration::from_millis(self.spec.deadlines.intent_ms as u64);
+        let deadline = now + Duration::from_millis(deadlines.intent_ms as u64);
         self.phase = Phase::Gathering { started: now, deadline };
         Ok(out)
     }
@@ -781,16 +782,21 @@ mod tests {
         join(&mut s, b, true);
         published(&s.next(t0));
         answer(&mut s, a, 1);
-        let deadline = t0 + Duration::from_millis(100);
-        assert!(matches!(s.next(t0 + Duration::from_millis(99)), Next::Wait(d) if d == deadline));
+        // The first step waits FIRST_STEP_FACTOR times the 100 ms deadline.
+        let first = Duration::from_millis(100 * u64::from(geese_proto::net::FIRST_STEP_FACTOR));
+        let deadline = t0 + first;
+        assert!(matches!(s.next(deadline - Duration::from_millis(1)), Next::Wait(d) if d == deadline));
         let r = report(s.next(deadline));
         assert_eq!((r.net.intents_late, r.net.deadline_hits), (2, 1));
         assert_eq!(r.report.missing_intents, 2);
-        assert!(r.net.wait_us >= 100_000);
+        assert!(r.net.wait_us as u128 >= first.as_micros());
         // A straggler of step 1 during step 2 is dropped, and not hostile.
         published(&s.next(deadline));
         assert!(!answer(&mut s, b, 1));
         answer(&mut s, a, 2);
+        // Later steps have the usual deadline.
+        let later = deadline + Duration::from_millis(100);
+        assert!(matches!(s.next(deadline + Duration::from_millis(99)), Next::Wait(d) if d == later));
         assert!(answer(&mut s, b, 2));
         let r = report(s.next(deadline));
         assert_eq!((r.net.intents_late, r.net.hostile), (0, 0));

@@ -11,6 +11,13 @@
 //! are) from the world's `ctl/info` queryable, so agents on another host need nothing
 //! but `--run` and a way to reach the router. It exits when the world's liveliness
 //! token disappears, on the control plane's stop, or on SIGINT/SIGTERM.
+//!
+//! It uses the system allocator, not mimalloc as `geese` and `geese-world` do: an agent
+//! process needs about 1 MiB of heap, and mimalloc kept 10 MiB resident for it (its
+//! per-thread, per-size-class pages), against under 2 MiB with glibc's malloc — the
+//! difference between a thousand agent processes fitting on one machine or not. Ten
+//! processes hosting 100 learners each spent the same CPU time with either (5.5 s of
+//! user time for 400 steps, docs/PERFORMANCE.md).
 use anyhow::{bail, Context, Result};
 use clap::{Parser, ValueEnum};
 use geese_agent::host::{Host, Input, Next, Out};
@@ -111,10 +118,6 @@ enum Event {
     },
     Stop,
 }
-
-/// mimalloc: the step loop allocates many small, short-lived buffers.
-#[global_allocator]
-static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> Result<()> {
     // Without RUST_LOG: warnings, but not Zenoh's report of data that arrives for a cell
