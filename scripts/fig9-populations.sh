@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The best fixed population of each algorithm for Fig. 9 (REFERENCE.md §8.5), picked the
-# way the reference code's harnesses do it (NOTES.md, "Fig. 9: one best population per
-# algorithm"): learn with seeds FIRST..LAST (default 1..16), each run followed by the
-# fixed test of its own population at the algorithm's sampling size (GEESE-BT 10 %,
-# BeTr-GEESE and Multi-GEESE 50 %) in the fixed-agent world; keep the runs that pass the
+# way the reference code's harnesses do it (NOTES.md, "Figs. 8b, 9 and 10 test one saved
+# population per algorithm"): learn with seeds FIRST..LAST (default 1..16), each run
+# followed by the fixed test of its own population at the algorithm's sampling size
+# (GEESE-BT 10 %, BeTr-GEESE and Multi-GEESE 50 %) in the fixed-agent world; keep the
+# runs that pass the
 # reference harness's gates (Multi-GEESE: collect phase above 65 % and combine phase
 # above 40 %, `mgene/experiment.py`; BeTr-GEESE: learning run above 5 %,
 # `resilience_goal/experiment.py`; GEESE-BT: none); of those, the one whose own fixed

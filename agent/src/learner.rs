@@ -9,8 +9,8 @@
 //! The order inside `finish_step` is the reference code's (§6.2): tick, visited cells,
 //! fitness, lateral transfer into the pool, genetic operators, update. Genes are copied,
 //! not shared (§6.6), and the blackboard is per agent (§2.2), as DESIGN.md §2 requires:
-//! codons are immutable, so holding the sender's is as good as a copy (NOTES.md, "Shared
-//! genomes"), and a pool that reaches ST within the step only borrows them for that
+//! codons are immutable, so holding the sender's is as good as a copy (docs/research/core-speed.md,
+//! "Shared genomes"), and a pool that reaches ST within the step only borrows them for that
 //! step's genetic step. The learners of one process share a
 //! [`GeneCache`]: scratch buffers, and the trees of adopted phenotypes.
 //!

@@ -24,6 +24,11 @@ use campaign_cli::{CampaignArgs, ExportArgs, MergeArgs, ReportArgs};
 #[derive(Parser)]
 #[command(name = "geese", version, about = "Online evolution of resilient swarm behaviours (BeTr-GEESE)")]
 struct Cli {
+    /// Check the command line and exit 0 without running anything: the flags, values and
+    /// subcommands as clap parses them, not the files they name. Hidden; the test of
+    /// docs/REPRODUCTION.md checks every command there with it (`geese --check-args …`).
+    #[arg(long, hide = true)]
+    check_args: bool,
     #[command(subcommand)]
     cmd: Cmd,
 }
@@ -842,6 +847,9 @@ const QUIET_ZENOH: &str = "error,zenoh=off,zenoh_transport=off,zenoh_link=off,ze
 fn run() -> Result<()> {
     // Zenoh logs a session's configuration, password included, at debug level.
     let cli = Cli::parse();
+    if cli.check_args {
+        return Ok(());
+    }
     let filter = match tracing_subscriber::EnvFilter::try_from_default_env() {
         Ok(f) => f.add_directive(geese_proto::zenoh_bus::HIDE_SECRETS_DIRECTIVE.parse()?),
         // `geese control` says itself why it has no session (`control::OPEN_WAIT`):

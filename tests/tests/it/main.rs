@@ -2,6 +2,7 @@
 mod campaign;
 mod core;
 mod distributed;
+mod docs;
 mod fuzz;
 mod multihost;
 mod protocol;
