@@ -143,6 +143,9 @@ knobs! {
     Kill = "kill": Kind::Float(0.0, 1.0),
     /// ... after this step.
     KillAt = "kill_at": Kind::Int(0, STEP_MAX),
+    /// The world turns to the other task right after this step (`SwitchTask`, issue
+    /// 30.4): a foraging trial ends as a nest trial and the other way round.
+    SwitchAt = "switch_at": Kind::Int(0, STEP_MAX),
 }
 
 impl Knob {
@@ -395,6 +398,9 @@ impl Condition {
                 Some(at) => sched.push(Scheduled { at, change: Perturbation::SetGeneLoss(p) }),
                 None => c.gene_loss = p,
             }
+        }
+        if let Some(at) = time(Knob::SwitchAt)? {
+            sched.push(Scheduled { at, change: Perturbation::SwitchTask(task.other()) });
         }
         if let (Some(f), Some(at)) = (self.float(Knob::Kill), time(Knob::KillAt)?) {
             sched.push(Scheduled { at, change: Perturbation::KillFraction(f) });

@@ -629,7 +629,7 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
         Program::Learn { algorithm, phase: Some(p), .. } => format!("{algorithm} ({p} phase)"),
         Program::Learn { algorithm, .. } => algorithm.to_string(),
     };
-    format!(
+    let mut line = format!(
         "geese run: {what}, {} agents{transport}, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
         c.world.agents,
         c.steps,
@@ -639,7 +639,11 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
         c.learner.st.unwrap_or_else(|| c.algorithm.default_st()),
         c.world.grid,
         c.seed
-    )
+    );
+    for n in &spec.notes {
+        line.push_str(&format!("\nnote: {n}"));
+    }
+    line
 }
 
 /// One stage in this process; returns the population its agents ended with.

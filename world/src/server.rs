@@ -29,7 +29,7 @@ use geese_proto::net::{
     LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
-use geese_proto::{decode, encode, encode_sized, CodecError, Control, StepReport};
+use geese_proto::{decode, encode, encode_sized, CodecError, Control, Perturbation, StepReport};
 use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 
@@ -456,6 +456,15 @@ impl Server {
     fn hand_over_scheduled(&mut self) -> bool {
         let any = !self.scheduled.is_empty();
         for (at, change) in std::mem::take(&mut self.scheduled) {
+            if let Perturbation::SwitchTask(task) = change {
+                // Checked here, in arrival order, against the switches already
+                // scheduled: only the world knows which task will be running then.
+                if self.world.task_after(at) == task {
+                    tracing::warn!("control command rejected: SwitchTask to {task} at step {at}: that task is already running then");
+                    self.count_rejected();
+                    continue;
+                }
+            }
             self.world.schedule(at, change);
         }
         any
