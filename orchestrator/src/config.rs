@@ -256,6 +256,17 @@ impl RunConfig {
         self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, task))
     }
 
+    /// The task the agents' program is checked against
+    /// ([`geese_agent::program::Program::prepare`]): `union` when the task changes
+    /// during the run (both tasks' objects belong), else the task.
+    pub fn program_task(&self) -> &'static str {
+        if self.switches().is_empty() {
+            task_name(self.world.task)
+        } else {
+            "union"
+        }
+    }
+
     /// The scheduled task switches, in the order they apply: (index in `perturbations`,
     /// step, new task).
     pub fn switches(&self) -> Vec<(usize, u64, Task)> {
@@ -510,7 +521,7 @@ impl RunConfig {
             }
         }
         program
-            .prepare(task_name(self.world.task))
+            .prepare(self.program_task())
             .map_err(|e| ConfigError::Population { path: source.into(), message: e.to_string() })?;
         let learner = Arc::new(self.learner.clone());
         Ok(RunSpec {

@@ -646,6 +646,16 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
     line
 }
 
+/// After a task switch: how long the new task took to reach the threshold.
+fn print_recovery(s: &geese_orchestrator::trial::TrialSummary, threshold: f64) {
+    if let Some(at) = s.switched_after {
+        match s.steps_to_threshold_after_switch {
+            Some(n) => println!("task switched after step {at}: the new task reached {threshold} % {n} steps later"),
+            None => println!("task switched after step {at}: the new task never reached {threshold} %"),
+        }
+    }
+}
+
 /// One stage in this process; returns the population its agents ended with.
 fn in_process_run(
     spec: &geese_orchestrator::RunSpec,
@@ -699,6 +709,7 @@ fn in_process_run(
         Some(s) => println!("reached {} % at step {s}", c.threshold),
         None => println!("never reached {} % (max {:.2} %)", c.threshold, summary.max_task_pct),
     }
+    print_recovery(&summary, c.threshold);
     println!("wall time: {:.2} s", summary.wall_seconds);
     println!("results: {} and {}", csv_path.display(), out.join("manifest.json").display());
     Ok(Ran { summary, members: trial.members() })
@@ -723,6 +734,7 @@ fn net_run_cmd(
         Some(st) => println!("reached {} % at step {st}", c.threshold),
         None => println!("never reached {} % (max {:.2} %)", c.threshold, s.max_task_pct),
     }
+    print_recovery(s, c.threshold);
     println!(
         "wall time: {:.2} s ({:.1} steps/s once all processes were present)",
         s.wall_seconds,
