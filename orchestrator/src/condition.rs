@@ -146,6 +146,8 @@ knobs! {
     /// The world turns to the other task right after this step (`SwitchTask`, issue
     /// 30.4): a foraging trial ends as a nest trial and the other way round.
     SwitchAt = "switch_at": Kind::Int(0, STEP_MAX),
+    /// The learners' mutation rule: fixed or stress (issue 30.3).
+    Mutation = "mutation": Kind::Text,
 }
 
 impl Knob {
@@ -347,6 +349,9 @@ impl Condition {
         }
         if let Some(Level::Text(s)) = self.get(Knob::Genes) {
             c.fidelity.genes = value_enum(s).map_err(|e| knob_err(Knob::Genes, e))?;
+        }
+        if let Some(Level::Text(s)) = self.get(Knob::Mutation) {
+            c.learner.mutation = s.parse().map_err(|e: String| knob_err(Knob::Mutation, e))?;
         }
         if let Some(Level::Text(s)) = self.get(Knob::Strategy) {
             c.strategy = Some(s.parse().map_err(|e: String| knob_err(Knob::Strategy, e))?);

@@ -118,6 +118,10 @@ struct RunArgs {
     /// Learning algorithm: betr-geese, geese-bt or multi-geese.
     #[arg(long)]
     algorithm: Option<geese_agent::Algorithm>,
+    /// Mutation rule: fixed (GE's mutation_prob; the default) or stress (rises while an
+    /// agent's fitness stalls or falls; constants under [learner.stress]).
+    #[arg(long)]
+    mutation: Option<String>,
     /// Multi-GEESE: run one phase alone (collect, or combine with --collect-population).
     #[arg(long)]
     phase: Option<geese_agent::Phase>,
@@ -225,6 +229,9 @@ impl RunArgs {
         }
         if let Some(v) = self.algorithm {
             c.algorithm = v;
+        }
+        if let Some(v) = &self.mutation {
+            c.learner.mutation = v.parse().map_err(|e: String| anyhow::anyhow!("--mutation: {e}"))?;
         }
         if let Some(v) = self.phase {
             c.phase = Some(v);

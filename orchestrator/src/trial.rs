@@ -205,8 +205,7 @@ impl Trial {
         }
         let geom = world.geometry();
         let hub = world.hub();
-        let prepared =
-            spec.program.prepare(cfg.program_task()).map_err(|e| SetupError::Agents(e.to_string()))?;
+        let prepared = spec.program.prepare(cfg.program_task()).map_err(|e| SetupError::Agents(e.to_string()))?;
         let shared_genes = cfg.fidelity.genes == Genes::Shared;
         let agents = (0..cfg.world.agents)
             .map(|id| {
