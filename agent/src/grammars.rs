@@ -2,7 +2,11 @@
 //!
 //! Texts are byte-for-byte the reference grammars (REFERENCE.md §3, `grammars/README`),
 //! plus the nest variants derived from them (`betr-nest-avoid`: `forge.bnf` with
-//! Hub|Boundary and Debris; `geese-bt-nest`: `sf.bnf` likewise).
+//! Hub|Boundary and Debris; `geese-bt-nest`: `sf.bnf` likewise), and the union
+//! variants (`betr-union-avoid`, `geese-bt-union`, `multi-collect-union`,
+//! `multi-combine-union`): the foraging grammar with the objects of both tasks
+//! (Hub|Sites|Boundary, Food|Debris), for runs whose task changes (`SwitchTask`,
+//! issue 30.4), whose learners must be able to express the task that comes.
 
 /// (name, text) of every built-in grammar.
 pub const BUILTIN: &[(&str, &str)] = &[
@@ -17,6 +21,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("multi-collect-nest", include_str!("../grammars/multi-collect-nest.bnf")),
     ("multi-combine-foraging", include_str!("../grammars/multi-combine-foraging.bnf")),
     ("multi-combine-nest", include_str!("../grammars/multi-combine-nest.bnf")),
+    ("betr-union-avoid", include_str!("../grammars/betr-union-avoid.bnf")),
+    ("geese-bt-union", include_str!("../grammars/geese-bt-union.bnf")),
+    ("multi-collect-union", include_str!("../grammars/multi-collect-union.bnf")),
+    ("multi-combine-union", include_str!("../grammars/multi-combine-union.bnf")),
 ];
 
 /// The text of a built-in grammar by name (with or without `.bnf`).

@@ -227,6 +227,11 @@ impl Host {
                 .ok()
                 .and_then(|w| w.get("task").and_then(|t| t.as_str()).map(str::to_string))
                 .unwrap_or_else(|| "foraging".into());
+            // A run whose task changes holds both tasks' objects (as the orchestrator's
+            // `RunConfig::program_task`).
+            let switches =
+                info.spec.perturbations.iter().any(|(_, p)| matches!(p, geese_proto::Perturbation::SwitchTask(_)));
+            let task = if switches { "union".to_string() } else { task };
             let prepared = program.prepare(&task).map_err(|e| HostError::Learner(e.to_string()))?;
             for id in range.ids() {
                 let role = prepared.role(id, info.spec.seed);

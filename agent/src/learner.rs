@@ -71,6 +71,81 @@ pub struct LearnerConfig {
     /// GE parameters of the Multi-GEESE combine phase (`test_new.txt`: genomes up to
     /// 500 codons, crossover probability 0.1; REFERENCE §5.1).
     pub combine_ge: GeParams,
+    /// How an agent's mutation probability moves (issue 30.3): `fixed` (the paper's,
+    /// GE's `mutation_prob` always) or `stress` ([`StressMutation`]).
+    pub mutation: MutationRule,
+    /// The constants of the `stress` rule.
+    pub stress: StressMutation,
+}
+
+/// The rule of an agent's mutation probability (PAPER §8: stress-induced mutation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum MutationRule {
+    /// GE's `mutation_prob`, at every genetic step (the paper; the default).
+    #[default]
+    Fixed,
+    /// Rises while the agent's fitness stalls or falls, relaxes when it recovers.
+    Stress,
+}
+
+impl std::str::FromStr for MutationRule {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "fixed" => Ok(MutationRule::Fixed),
+            "stress" => Ok(MutationRule::Stress),
+            other => Err(format!("unknown mutation rule '{other}' (expected fixed or stress)")),
+        }
+    }
+}
+
+/// Stress-induced mutation (issue 30.3; docs/research/stress-induced-mutation.md).
+///
+/// Why: an agent whose gene stops paying keeps proposing offspring one codon flip
+/// (10 %) away from a pool that no longer fits the world; bacteria under stress raise
+/// their mutation rate to search further, and relax it once they fit again.
+///
+/// Rule. Each agent keeps a stress level `s` in [0, 1], 0 at start; its mutation
+/// probability at a genetic step is `p = base + s·(max − base)`, `base` being GE's
+/// `mutation_prob` (the phase's). At every genetic step the agent compares the fitness
+/// its outgoing gene reached (the running fitness at that step) with the one the gene
+/// before reached at the previous genetic step: not higher (stalled or fallen) →
+/// `s ← s + rise·(1 − s)`; higher (recovered) → `s ← relax·s`. The first genetic step
+/// has nothing to compare with and leaves `s` at 0. No random draw: the rule changes
+/// nothing of a run's random streams but the mutation draws themselves.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StressMutation {
+    /// Share of the way to 1 the stress level moves at a stalled genetic step.
+    pub rise: f64,
+    /// Share of the stress level kept at an improving genetic step.
+    pub relax: f64,
+    /// The mutation probability at full stress (at least GE's `mutation_prob`).
+    pub max: f64,
+}
+
+impl Default for StressMutation {
+    fn default() -> Self {
+        StressMutation { rise: 0.5, relax: 0.5, max: 0.5 }
+    }
+}
+
+impl StressMutation {
+    /// The stress level after a genetic step whose outgoing gene reached `now`, the one
+    /// before having reached `before` (None at the first genetic step).
+    pub fn next(&self, stress: f64, before: Option<f64>, now: f64) -> f64 {
+        match before {
+            None => stress,
+            Some(b) if now <= b => stress + self.rise * (1.0 - stress),
+            Some(_) => self.relax * stress,
+        }
+    }
+
+    /// The mutation probability at stress level `stress` over base rate `base`.
+    pub fn rate(&self, base: f64, stress: f64) -> f64 {
+        (base + stress * (self.max - base)).clamp(0.0, 1.0)
+    }
 }
 
 /// When the genetic operators run (REFERENCE §6.2 step 7, §6.7).
@@ -119,6 +194,8 @@ impl Default for LearnerConfig {
             triggers: None,
             ge: GeParams::default(),
             combine_ge: GeParams { max_genome_length: 500, crossover_prob: 0.1, ..GeParams::default() },
+            mutation: MutationRule::Fixed,
+            stress: StressMutation::default(),
         }
     }
 }
@@ -143,6 +220,26 @@ impl LearnerConfig {
         }
         if self.stagnation_explore > 0 && self.stagnation_individuals < 4 {
             return bad("stagnation_individuals", "must be at least 4 when the stagnation rule is on");
+        }
+        for (field, v) in
+            [("stress.rise", self.stress.rise), ("stress.relax", self.stress.relax), ("stress.max", self.stress.max)]
+        {
+            if !(0.0..=1.0).contains(&v) {
+                return Err(LearnerConfigError::Invalid { field, reason: format!("{v} is not in [0, 1]") });
+            }
+        }
+        if self.mutation == MutationRule::Stress {
+            for (field, base) in [("ge", self.ge.mutation_prob), ("combine_ge", self.combine_ge.mutation_prob)] {
+                if self.stress.max < base {
+                    return Err(LearnerConfigError::Invalid {
+                        field: "stress.max",
+                        reason: format!(
+                            "{} is below learner.{field}.mutation_prob = {base} (stress would lower the rate)",
+                            self.stress.max
+                        ),
+                    });
+                }
+            }
         }
         self.ge.validate().map_err(|e| LearnerConfigError::Invalid { field: "ge", reason: e.to_string() })?;
         self.combine_ge
@@ -424,6 +521,10 @@ pub struct Learner {
     have_percept: bool,
     /// Shared gene objects, if the trial asked for them ([`Learner::share_genes`]).
     shared: Option<Box<SharedGenes>>,
+    /// Stress level of the `stress` mutation rule ([`StressMutation`]), in [0, 1].
+    stress: f64,
+    /// The fitness the outgoing gene reached at the last genetic step (`stress` rule).
+    reached: Option<f64>,
 }
 
 /// What the learners of one process (the in-process trial, or one agent process) share.
@@ -749,6 +850,8 @@ impl Learner {
             expected: Vec::new(),
             have_percept: false,
             shared: None,
+            stress: 0.0,
+            reached: None,
             view,
             cfg,
             grammar,
@@ -1133,7 +1236,15 @@ impl Learner {
             None => Vec::new(),
             Some(sh) => sh.read_fields(genes, &lt.joining, &mut pool),
         };
-        let p = params(&self.cfg, &self.kind);
+        let mut p = params(&self.cfg, &self.kind);
+        let stressed;
+        if self.cfg.mutation == MutationRule::Stress {
+            let now = self.fitness();
+            self.stress = self.cfg.stress.next(self.stress, self.reached, now);
+            self.reached = Some(now);
+            stressed = GeParams { mutation_prob: self.cfg.stress.rate(p.mutation_prob, self.stress), ..p.clone() };
+            p = &stressed;
+        }
         let step = ge::genetic_step_on(workspace, &self.grammar, &mut pool, p, &mut self.rng_ge);
         self.pool.clear();
         let Ok((mut winner, stats)) = step else { return };
@@ -1176,6 +1287,39 @@ impl Learner {
 mod tests {
     use super::*;
     use crate::grammars;
+
+    /// The stress rule (issue 30.3): a stalled or fallen genetic step moves the stress
+    /// level half-way to 1, an improving one halves it; the first changes nothing; the
+    /// rate runs from GE's base to `max`. Constants outside [0, 1], and a `max` below
+    /// the base rate, are refused naming the key.
+    #[test]
+    fn stress_rises_while_fitness_stalls_and_relaxes_when_it_recovers() {
+        let r = StressMutation::default();
+        assert_eq!(r.next(0.0, None, 5.0), 0.0);
+        assert_eq!(r.next(0.0, Some(5.0), 5.0), 0.5, "a stall");
+        assert_eq!(r.next(0.5, Some(5.0), 3.0), 0.75, "a fall");
+        assert_eq!(r.next(0.75, Some(3.0), 4.0), 0.375, "a recovery");
+        assert_eq!(r.rate(0.1, 0.0), 0.1);
+        assert_eq!(r.rate(0.1, 1.0), 0.5);
+        assert!((r.rate(0.1, 0.5) - 0.3).abs() < 1e-12);
+        let bad = |stress: StressMutation, mutation| {
+            LearnerConfig { stress, mutation, ..LearnerConfig::default() }.validate().unwrap_err().to_string()
+        };
+        let fixed = MutationRule::Fixed;
+        assert_eq!(bad(StressMutation { rise: 1.5, ..r }, fixed), "learner.stress.rise: 1.5 is not in [0, 1]");
+        assert_eq!(bad(StressMutation { relax: -0.1, ..r }, fixed), "learner.stress.relax: -0.1 is not in [0, 1]");
+        assert_eq!(bad(StressMutation { max: f64::NAN, ..r }, fixed), "learner.stress.max: NaN is not in [0, 1]");
+        let e = bad(StressMutation { max: 0.05, ..r }, MutationRule::Stress);
+        assert!(e.starts_with("learner.stress.max: 0.05 is below learner.ge.mutation_prob = 0.1"), "{e}");
+        assert!(LearnerConfig { stress: StressMutation { max: 0.05, ..r }, ..LearnerConfig::default() }
+            .validate()
+            .is_ok());
+        assert_eq!("stress".parse::<MutationRule>(), Ok(MutationRule::Stress));
+        assert_eq!(
+            "heat".parse::<MutationRule>().unwrap_err(),
+            "unknown mutation rule 'heat' (expected fixed or stress)"
+        );
+    }
 
     fn grammar(name: &str) -> Grammar {
         Grammar::parse(grammars::builtin(name).expect("built-in grammar")).expect("parses")

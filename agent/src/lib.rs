@@ -29,7 +29,8 @@ pub mod program;
 pub mod view;
 
 pub use learner::{
-    FitnessCell, FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig, SharedGene, Triggers,
+    FitnessCell, FitnessVariant, Gene, GeneCache, GeneRef, Learner, LearnerConfig, MutationRule, SharedGene,
+    StressMutation, Triggers,
 };
 pub use program::{Algorithm, FitnessTerms, Phase, Population, Program, Role, Strategy};
 #[cfg(test)]

@@ -341,9 +341,11 @@ fn substitute(node: &mut PNode, dict: &GeneDict) -> Result<(), String> {
 }
 
 /// Object types a task's world has no use for: a phenotype naming one belongs to the
-/// other task.
+/// other task. `union` is a run whose task changes (`SwitchTask`, issue 30.4): both
+/// tasks' objects belong to it.
 pub fn foreign_objects(task: &str) -> &'static [ObjectKind] {
     match task {
+        "union" => &[],
         "nest" => &[ObjectKind::Food, ObjectKind::Sites],
         _ => &[ObjectKind::Debris, ObjectKind::Boundary],
     }

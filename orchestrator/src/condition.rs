@@ -143,6 +143,11 @@ knobs! {
     Kill = "kill": Kind::Float(0.0, 1.0),
     /// ... after this step.
     KillAt = "kill_at": Kind::Int(0, STEP_MAX),
+    /// The world turns to the other task right after this step (`SwitchTask`, issue
+    /// 30.4): a foraging trial ends as a nest trial and the other way round.
+    SwitchAt = "switch_at": Kind::Int(0, STEP_MAX),
+    /// The learners' mutation rule: fixed or stress (issue 30.3).
+    Mutation = "mutation": Kind::Text,
 }
 
 impl Knob {
@@ -345,6 +350,9 @@ impl Condition {
         if let Some(Level::Text(s)) = self.get(Knob::Genes) {
             c.fidelity.genes = value_enum(s).map_err(|e| knob_err(Knob::Genes, e))?;
         }
+        if let Some(Level::Text(s)) = self.get(Knob::Mutation) {
+            c.learner.mutation = s.parse().map_err(|e: String| knob_err(Knob::Mutation, e))?;
+        }
         if let Some(Level::Text(s)) = self.get(Knob::Strategy) {
             c.strategy = Some(s.parse().map_err(|e: String| knob_err(Knob::Strategy, e))?);
         }
@@ -395,6 +403,9 @@ impl Condition {
                 Some(at) => sched.push(Scheduled { at, change: Perturbation::SetGeneLoss(p) }),
                 None => c.gene_loss = p,
             }
+        }
+        if let Some(at) = time(Knob::SwitchAt)? {
+            sched.push(Scheduled { at, change: Perturbation::SwitchTask(task.other()) });
         }
         if let (Some(f), Some(at)) = (self.float(Knob::Kill), time(Knob::KillAt)?) {
             sched.push(Scheduled { at, change: Perturbation::KillFraction(f) });

@@ -228,6 +228,10 @@ pub struct RunSpec {
     /// The percept reach was the run's choice (`world.percept_reach` unset), so the next
     /// stage chooses again for its own trees.
     reach_by_run: bool,
+    /// What the run should know before it starts but is not an error (a fixed
+    /// population meeting a task its trees do not name); printed and kept in the
+    /// manifest.
+    pub notes: Vec<String>,
 }
 
 impl RunConfig {
@@ -247,7 +251,62 @@ impl RunConfig {
             (Algorithm::MultiGeese, None) => Some(Phase::Collect),
             (_, p) => p,
         };
-        self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, task_name(self.world.task)))
+        // A run whose task changes learns in the union grammar of both tasks (issue 30.4).
+        let task = if self.switches().is_empty() { task_name(self.world.task) } else { "union" };
+        self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, task))
+    }
+
+    /// The task the agents' program is checked against
+    /// ([`geese_agent::program::Program::prepare`]): `union` when the task changes
+    /// during the run (both tasks' objects belong), else the task.
+    pub fn program_task(&self) -> &'static str {
+        if self.switches().is_empty() {
+            task_name(self.world.task)
+        } else {
+            "union"
+        }
+    }
+
+    /// The scheduled task switches, in the order they apply: (index in `perturbations`,
+    /// step, new task).
+    pub fn switches(&self) -> Vec<(usize, u64, Task)> {
+        let mut v: Vec<(usize, u64, Task)> = self
+            .perturbations
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| match p.change {
+                Perturbation::SwitchTask(t) => Some((i, p.at, t)),
+                _ => None,
+            })
+            .collect();
+        v.sort_by_key(|&(i, at, _)| (at, i));
+        v
+    }
+
+    /// Check the task switches: each applies before the last step, and each changes
+    /// the task (a switch to the task already running is a mistake worth naming).
+    fn check_switches(&self) -> Result<(), ConfigError> {
+        let mut task = self.world.task;
+        for (i, at, to) in self.switches() {
+            if at >= self.steps {
+                return Err(invalid(
+                    &format!("perturbations[{i}].at"),
+                    format!(
+                        "SwitchTask at step {at} is beyond the run: it applies after step {at}, and the run \
+                         ends at step {} (steps = {})",
+                        self.steps, self.steps
+                    ),
+                ));
+            }
+            if to == task {
+                return Err(invalid(
+                    &format!("perturbations[{i}].change"),
+                    format!("SwitchTask to {to} at step {at}: the world already runs the {to} task then"),
+                ));
+            }
+            task = to;
+        }
+        Ok(())
     }
 
     /// The locality window, checked: `FROM:TO` with 1 ≤ FROM ≤ TO ≤ `steps`.
@@ -347,6 +406,7 @@ impl RunConfig {
             check_max("at", p.at, MAX_STEPS).map_err(|e| invalid(&format!("perturbations[{i}].at"), e.to_string()))?;
             p.change.validate(&geom).map_err(|e| invalid(&format!("perturbations[{i}].change"), e.to_string()))?;
         }
+        self.check_switches()?;
         if let Some(s) = self.sample {
             if !(s > 0.0 && s <= 1.0) {
                 return Err(invalid("sample", format!("{s} is not in (0, 1]")));
@@ -426,8 +486,42 @@ impl RunConfig {
         let locality = self.locality_window()?;
         let name = self.grammar_name();
         let (grammar, text) = load_grammar(&name)?;
+        let mut notes = Vec::new();
+        for (i, at, to) in self.switches() {
+            let lacks: Vec<&str> = to.objects().iter().map(|k| k.name()).filter(|k| !names_object(&text, k)).collect();
+            match &program {
+                Program::Learn { .. } if !lacks.is_empty() => {
+                    return Err(invalid(
+                        &format!("perturbations[{i}].change"),
+                        format!(
+                            "SwitchTask to {to}: grammar {name} cannot express the {to} task (it lacks {}); \
+                             learn in a union grammar (leave `grammar` unset, or betr-union-avoid, \
+                             geese-bt-union, multi-collect-union, multi-combine-union)",
+                            lacks.join(" and ")
+                        ),
+                    ));
+                }
+                Program::Fixed { members, .. } => {
+                    // An experiment, not an error: the fixed swarm meets a task its
+                    // trees may not name (issue 30, "Bad input").
+                    let blind = members
+                        .iter()
+                        .filter(|m| to.objects().iter().any(|k| !names_object(&m.phenotype, k.name())))
+                        .count();
+                    if blind > 0 {
+                        notes.push(format!(
+                            "SwitchTask to {to} at step {at}: {blind} of the {} fixed members do not name both of \
+                             the {to} task's objects ({}); they meet it with the trees they have",
+                            members.len(),
+                            to.objects().iter().map(|k| k.name()).collect::<Vec<_>>().join(", ")
+                        ));
+                    }
+                }
+                _ => {}
+            }
+        }
         program
-            .prepare(task_name(self.world.task))
+            .prepare(self.program_task())
             .map_err(|e| ConfigError::Population { path: source.into(), message: e.to_string() })?;
         let learner = Arc::new(self.learner.clone());
         Ok(RunSpec {
@@ -441,6 +535,7 @@ impl RunConfig {
             stage,
             locality,
             reach_by_run,
+            notes,
         })
     }
 
@@ -531,6 +626,12 @@ pub fn task_name(t: Task) -> &'static str {
         Task::Foraging => "foraging",
         Task::Nest => "nest",
     }
+}
+
+/// Whether `text` (a grammar or a phenotype) names object kind `kind` as a word of its
+/// own: `Food` in `CompositeDrop_Food` or `<dobjects>::=Food|Debris`, not in `Foods`.
+pub fn names_object(text: &str, kind: &str) -> bool {
+    text.split(|c: char| !c.is_ascii_alphanumeric()).any(|w| w == kind)
 }
 
 /// Read a population file.

@@ -68,6 +68,10 @@ pub struct ChangeArgs {
     /// Kill this fraction (in (0, 1]) of the live agents.
     #[arg(long)]
     pub kill: Option<f64>,
+    /// Turn the world to this task (foraging or nest): the old task's items and places
+    /// go, the new task's come. The world refuses a switch to the task it is running.
+    #[arg(long, value_name = "foraging|nest")]
+    pub switch_task: Option<String>,
 }
 
 /// The flag of a field [`Control::validate`] refused.
@@ -115,6 +119,10 @@ impl ChangeArgs {
         }
         if let Some(p) = self.gene_loss {
             return Ok(Perturbation::SetGeneLoss(p));
+        }
+        if let Some(t) = &self.switch_task {
+            let task: geese_proto::Task = t.parse().map_err(|e: String| anyhow::anyhow!("--switch-task: {e}"))?;
+            return Ok(Perturbation::SwitchTask(task));
         }
         if let Some(f) = self.kill {
             if f == 0.0 {
@@ -234,7 +242,14 @@ mod tests {
     use super::*;
 
     fn change() -> ChangeArgs {
-        ChangeArgs { add_obstacles: None, ip: None, lateral_transfer: None, gene_loss: None, kill: None }
+        ChangeArgs {
+            add_obstacles: None,
+            ip: None,
+            lateral_transfer: None,
+            gene_loss: None,
+            kill: None,
+            switch_task: None,
+        }
     }
 
     fn arena() -> Geometry {

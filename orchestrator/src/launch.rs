@@ -811,7 +811,7 @@ async fn run_net_async(
     let processes = swarm.agents.len() as u32;
 
     let c = &spec.config;
-    let mut summary = TrialSummary::new(c.seed);
+    let mut summary = TrialSummary::for_run(c.seed, &c.perturbations);
     let mut first_report: Option<Instant> = None;
     let mut last_report = Instant::now();
     let mut reports = 0u64;

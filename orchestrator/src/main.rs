@@ -123,6 +123,10 @@ struct RunArgs {
     /// Learning algorithm: betr-geese, geese-bt or multi-geese.
     #[arg(long)]
     algorithm: Option<geese_agent::Algorithm>,
+    /// Mutation rule: fixed (GE's mutation_prob; the default) or stress (rises while an
+    /// agent's fitness stalls or falls; constants under [learner.stress]).
+    #[arg(long)]
+    mutation: Option<String>,
     /// Multi-GEESE: run one phase alone (collect, or combine with --collect-population).
     #[arg(long)]
     phase: Option<geese_agent::Phase>,
@@ -230,6 +234,9 @@ impl RunArgs {
         }
         if let Some(v) = self.algorithm {
             c.algorithm = v;
+        }
+        if let Some(v) = &self.mutation {
+            c.learner.mutation = v.parse().map_err(|e: String| anyhow::anyhow!("--mutation: {e}"))?;
         }
         if let Some(v) = self.phase {
             c.phase = Some(v);
@@ -634,7 +641,7 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
         Program::Learn { algorithm, phase: Some(p), .. } => format!("{algorithm} ({p} phase)"),
         Program::Learn { algorithm, .. } => algorithm.to_string(),
     };
-    format!(
+    let mut line = format!(
         "geese run: {what}, {} agents{transport}, {} steps, task {}, grammar {}, IP {}, ST {}, GS {}, seed {}",
         c.world.agents,
         c.steps,
@@ -644,7 +651,21 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
         c.learner.st.unwrap_or_else(|| c.algorithm.default_st()),
         c.world.grid,
         c.seed
-    )
+    );
+    for n in &spec.notes {
+        line.push_str(&format!("\nnote: {n}"));
+    }
+    line
+}
+
+/// After a task switch: how long the new task took to reach the threshold.
+fn print_recovery(s: &geese_orchestrator::trial::TrialSummary, threshold: f64) {
+    if let Some(at) = s.switched_after {
+        match s.steps_to_threshold_after_switch {
+            Some(n) => println!("task switched after step {at}: the new task reached {threshold} % {n} steps later"),
+            None => println!("task switched after step {at}: the new task never reached {threshold} %"),
+        }
+    }
 }
 
 /// One stage in this process; returns the population its agents ended with.
@@ -700,6 +721,7 @@ fn in_process_run(
         Some(s) => println!("reached {} % at step {s}", c.threshold),
         None => println!("never reached {} % (max {:.2} %)", c.threshold, summary.max_task_pct),
     }
+    print_recovery(&summary, c.threshold);
     println!("wall time: {:.2} s", summary.wall_seconds);
     println!("results: {} and {}", csv_path.display(), out.join("manifest.json").display());
     Ok(Ran { summary, members: trial.members() })
@@ -724,6 +746,7 @@ fn net_run_cmd(
         Some(st) => println!("reached {} % at step {st}", c.threshold),
         None => println!("never reached {} % (max {:.2} %)", c.threshold, s.max_task_pct),
     }
+    print_recovery(s, c.threshold);
     println!(
         "wall time: {:.2} s ({:.1} steps/s once all processes were present)",
         s.wall_seconds,

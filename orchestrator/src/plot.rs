@@ -314,7 +314,24 @@ fn s<E: std::fmt::Display>(e: E) -> String {
 
 /// Task % over time: one median line and IQR band per curve, the threshold dashed.
 pub fn learning_curves(stem: &Path, title: &str, curves: &[Curve], threshold: f64) -> Result<Vec<PathBuf>, PlotError> {
-    both(stem, (1000, 640), |r| draw_curves(r, title, curves, threshold), |r| draw_curves(r, title, curves, threshold))
+    learning_curves_marked(stem, title, curves, threshold, &[])
+}
+
+/// [`learning_curves`] with a vertical line at each step of `marks` (a perturbation,
+/// such as a change of task).
+pub fn learning_curves_marked(
+    stem: &Path,
+    title: &str,
+    curves: &[Curve],
+    threshold: f64,
+    marks: &[u64],
+) -> Result<Vec<PathBuf>, PlotError> {
+    both(
+        stem,
+        (1000, 640),
+        |r| draw_curves(r, title, curves, threshold, marks),
+        |r| draw_curves(r, title, curves, threshold, marks),
+    )
 }
 
 fn draw_curves<DB: DrawingBackend>(
@@ -322,6 +339,7 @@ fn draw_curves<DB: DrawingBackend>(
     title: &str,
     curves: &[Curve],
     threshold: f64,
+    marks: &[u64],
 ) -> Drawn {
     let t_max = curves.iter().filter_map(|c| c.steps.last()).copied().max().unwrap_or(1).max(1);
     let mut chart = ChartBuilder::on(root)
@@ -351,6 +369,11 @@ fn draw_curves<DB: DrawingBackend>(
             BLACK.mix(0.4).stroke_width(1),
         ))
         .map_err(s)?;
+    for &m in marks {
+        chart
+            .draw_series(LineSeries::new([(m as f64, 0.0), (m as f64, 100.0)], RED.mix(0.7).stroke_width(2)))
+            .map_err(s)?;
+    }
     for (i, c) in curves.iter().enumerate() {
         let col = color(i);
         let mut band: Vec<(f64, f64)> = c.steps.iter().zip(&c.q3).map(|(&x, &y)| (x as f64, y)).collect();

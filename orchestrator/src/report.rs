@@ -110,6 +110,78 @@ pub struct Report {
     pub conditions: Vec<Row>,
     pub groups: Vec<Row>,
     pub fits: Vec<Fit>,
+    /// Recovery from a change of task, per condition and starting task (conditions
+    /// with a `switch_at` knob; issue 30.4).
+    pub switches: Vec<SwitchRow>,
+}
+
+/// How trials of one condition and starting task recovered from a change of task.
+#[derive(Clone, Debug)]
+pub struct SwitchRow {
+    /// The task the trials started with; they end with the other.
+    pub task: String,
+    pub condition: String,
+    /// The switch applied right after this step.
+    pub switch_at: u64,
+    pub trials: usize,
+    /// Trials whose new task reached the threshold after the switch.
+    pub reached: usize,
+    /// Steps from the switch to the first stored step at the threshold, over the
+    /// trials that reached it (stored rows only: every `step_stride`-th step).
+    pub recovery: Option<Stats>,
+    /// Final task % (of the new task).
+    pub final_pct: Option<Stats>,
+}
+
+/// The `switch_at` level of a condition label, if it has one.
+fn switch_at(condition: &str) -> Option<u64> {
+    condition.split(' ').find_map(|kv| kv.strip_prefix("switch_at=")).and_then(|v| v.parse().ok())
+}
+
+/// The recovery table of the trials that switched task (none: no `switch_at` knob).
+fn switch_rows(store: &Store, trials: &[&StoredTrial], threshold: f64) -> Result<Vec<SwitchRow>, ReportError> {
+    let at: HashMap<i64, u64> = trials.iter().filter_map(|t| Some((t.id, switch_at(&t.condition)?))).collect();
+    if at.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut first: HashMap<i64, u64> = HashMap::new();
+    let mut last: HashMap<i64, f64> = HashMap::new();
+    store.for_each_task_pct(|id, step, v| {
+        if let Some(&a) = at.get(&id) {
+            if step > a && v >= threshold {
+                first.entry(id).or_insert(step - a);
+            }
+            last.insert(id, v);
+        }
+    })?;
+    let mut rows: Vec<SwitchRow> = Vec::new();
+    for t in trials.iter().filter(|t| at.contains_key(&t.id)) {
+        let i = match rows.iter().position(|r| r.task == t.task && r.condition == t.condition) {
+            Some(i) => i,
+            None => {
+                rows.push(SwitchRow {
+                    task: t.task.clone(),
+                    condition: t.condition.clone(),
+                    switch_at: at[&t.id],
+                    trials: 0,
+                    reached: 0,
+                    recovery: None,
+                    final_pct: None,
+                });
+                rows.len() - 1
+            }
+        };
+        rows[i].trials += 1;
+        rows[i].reached += usize::from(first.contains_key(&t.id));
+    }
+    for r in &mut rows {
+        let ids = || trials.iter().filter(|t| t.task == r.task && t.condition == r.condition).map(|t| t.id);
+        let rec: Vec<f64> = ids().filter_map(|id| first.get(&id).map(|&s| s as f64)).collect();
+        let fin: Vec<f64> = ids().filter_map(|id| last.get(&id).copied()).collect();
+        r.recovery = metrics::stats(&rec);
+        r.final_pct = metrics::stats(&fin);
+    }
+    Ok(rows)
 }
 
 fn row(task: &str, label: String, pts: &[&Point], failed: usize) -> Row {
@@ -253,6 +325,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
         }
     }
     let series_levels = level_order(kept.iter().map(|t| (t.series.as_str(), t.condition_index)));
+    let switches = switch_rows(store, &kept, threshold)?;
     Ok(Report {
         name: meta("name")?,
         description: meta("description")?,
@@ -267,6 +340,7 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
         conditions,
         groups,
         fits,
+        switches,
     })
 }
 
@@ -379,6 +453,38 @@ impl Report {
                 )?;
             }
         }
+        if !self.switches.is_empty() {
+            writeln!(
+                out,
+                "\nTask switch: steps from the switch until the new task first reached {} % (stored rows), \
+                 over the trials that got there; share of trials that got there; final % of the new task:",
+                self.threshold
+            )?;
+            writeln!(
+                out,
+                "{:<9} {:<9} {:<60} {:>8} {:>9} {:>9} {:>15} {:>9}",
+                "from", "to", "condition", "reached", "share", "median", "IQR", "final med"
+            )?;
+            for r in &self.switches {
+                let to = if r.task == "foraging" { "nest" } else { "foraging" };
+                let (med, iqr) = match &r.recovery {
+                    Some(s) => (format!("{:.0}", s.median), format!("{:.0}-{:.0}", s.q1, s.q3)),
+                    None => ("-".into(), "-".into()),
+                };
+                writeln!(
+                    out,
+                    "{:<9} {:<9} {:<60} {:>8} {:>9.2} {:>9} {:>15} {:>9}",
+                    r.task,
+                    to,
+                    r.condition,
+                    format!("{}/{}", r.reached, r.trials),
+                    r.reached as f64 / r.trials.max(1) as f64,
+                    med,
+                    iqr,
+                    r.final_pct.as_ref().map_or("-".into(), |s| format!("{:.2}", s.median))
+                )?;
+            }
+        }
         let failed: Vec<&StoredTrial> = self.trials.iter().filter(|t| t.outcome.is_none()).collect();
         if !failed.is_empty() {
             writeln!(out, "\nFailed trials:")?;
@@ -399,10 +505,33 @@ impl Report {
         Ok(())
     }
 
-    /// Write `conditions.csv`, `pooled.csv`, `fits.csv` and `points.csv` into `dir`.
+    /// Write `conditions.csv`, `pooled.csv`, `fits.csv` and `points.csv` into `dir`
+    /// (and `switch.csv` when trials switched task).
     pub fn write_csv(&self, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
         std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
         let mut files = Vec::new();
+        if !self.switches.is_empty() {
+            let mut s = String::from(
+                "task,condition,switch_at,trials,reached,share,recovery_median,recovery_q1,recovery_q3,final_median\n",
+            );
+            for r in &self.switches {
+                let q = |f: &dyn Fn(&Stats) -> f64| r.recovery.as_ref().map_or(String::new(), |x| f(x).to_string());
+                s.push_str(&format!(
+                    "{},{},{},{},{},{},{},{},{},{}\n",
+                    r.task,
+                    csv_field(&r.condition),
+                    r.switch_at,
+                    r.trials,
+                    r.reached,
+                    r.reached as f64 / r.trials.max(1) as f64,
+                    q(&|x| x.median),
+                    q(&|x| x.q1),
+                    q(&|x| x.q3),
+                    r.final_pct.as_ref().map_or(String::new(), |x| x.median.to_string())
+                ));
+            }
+            files.push(write_file(&dir.join("switch.csv"), &s)?);
+        }
         let rows_csv = |name: &str, rows: &[Row]| -> Result<PathBuf, ReportError> {
             let mut s = String::from(
                 "task,label,trials,failed,success_rate,power_mean,power_median,power_q1,power_q3,efficiency_mean,efficiency_median,efficiency_q1,efficiency_q3,ms_per_step_mean,ms_per_step_median,ms_per_step_q1,ms_per_step_q3\n",
@@ -528,7 +657,14 @@ impl Report {
                     ),
                 )
             };
-            files.extend(plot::learning_curves(&dir.join(stem), &title, curves, self.threshold)?);
+            // A change of task is marked where it happened (issue 30.4).
+            let marks: Vec<u64> = {
+                let mut m: Vec<u64> = self.switches.iter().filter(|r| &r.task == task).map(|r| r.switch_at).collect();
+                m.sort_unstable();
+                m.dedup();
+                m
+            };
+            files.extend(plot::learning_curves_marked(&dir.join(stem), &title, curves, self.threshold, &marks)?);
         }
         files.extend(self.plot_learning(store, dir, &kept, by_series, &x_name)?);
         for task in &tasks {

@@ -22,7 +22,7 @@
 //! thread count.
 //!
 //! [`Fidelity`]: crate::config::Fidelity
-use crate::config::{task_name, Blackboard, Genes, RunSpec, Schedule};
+use crate::config::{Blackboard, Genes, RunSpec, Schedule};
 use geese_agent::program::Member;
 use geese_agent::view::KindMap;
 use geese_agent::{FitnessCell, GeneCache, Learner, SharedGene};
@@ -48,6 +48,13 @@ pub struct TrialSummary {
     pub genetic_steps: u64,
     pub stagnation_steps: u64,
     pub wall_seconds: f64,
+    /// The step after which the run's first `SwitchTask` applied (issue 30.4).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub switched_after: Option<u64>,
+    /// Steps from that switch until the new task first reached the threshold: the
+    /// recovery time of a change of task (None: not reached, or no switch).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub steps_to_threshold_after_switch: Option<u64>,
 }
 
 impl TrialSummary {
@@ -63,7 +70,20 @@ impl TrialSummary {
             genetic_steps: 0,
             stagnation_steps: 0,
             wall_seconds: 0.0,
+            switched_after: None,
+            steps_to_threshold_after_switch: None,
         }
+    }
+
+    /// A summary that also measures the recovery from the first task switch of
+    /// `perturbations` (the metric of issue 30.4), on every transport alike.
+    pub fn for_run(seed: u64, perturbations: &[crate::config::Scheduled]) -> Self {
+        let switched_after = perturbations
+            .iter()
+            .filter(|p| matches!(p.change, geese_proto::Perturbation::SwitchTask(_)))
+            .map(|p| p.at)
+            .min();
+        TrialSummary { switched_after, ..TrialSummary::new(seed) }
     }
 
     /// Fold one step report in; every driver (in-process, Zenoh) keeps it this way.
@@ -73,6 +93,11 @@ impl TrialSummary {
         self.max_task_pct = self.max_task_pct.max(rep.task_pct);
         if self.first_step_at_threshold.is_none() && rep.task_pct >= threshold {
             self.first_step_at_threshold = Some(rep.step);
+        }
+        if let Some(at) = self.switched_after {
+            if self.steps_to_threshold_after_switch.is_none() && rep.step > at && rep.task_pct >= threshold {
+                self.steps_to_threshold_after_switch = Some(rep.step - at);
+            }
         }
         self.success |= rep.task_pct > threshold;
         self.genetic_steps += rep.genetic_steps as u64;
@@ -180,8 +205,7 @@ impl Trial {
         }
         let geom = world.geometry();
         let hub = world.hub();
-        let prepared =
-            spec.program.prepare(task_name(cfg.world.task)).map_err(|e| SetupError::Agents(e.to_string()))?;
+        let prepared = spec.program.prepare(cfg.program_task()).map_err(|e| SetupError::Agents(e.to_string()))?;
         let shared_genes = cfg.fidelity.genes == Genes::Shared;
         let agents = (0..cfg.world.agents)
             .map(|id| {
@@ -203,7 +227,7 @@ impl Trial {
             intents: vec![None; cfg.world.agents as usize],
             gene_cache: GeneCache::new(),
             threshold: cfg.threshold,
-            summary: TrialSummary::new(cfg.seed),
+            summary: TrialSummary::for_run(cfg.seed, &cfg.perturbations),
             schedule: cfg.fidelity.schedule,
             board: (cfg.fidelity.blackboard == Blackboard::Global).then(KindMap::default),
             offers: Vec::new(),

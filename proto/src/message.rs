@@ -415,4 +415,70 @@ pub enum Perturbation {
         y: i32,
         radius: i32,
     },
+    /// Turn the world to this task (PAPER §8, issue 30.4): the old task's items and
+    /// places go (carried ones too), the new task's come, laid out as a world built for
+    /// it would have them, and the task % counts the new task from 0. Why a
+    /// perturbation: a change of task is the hardest change of environment a swarm can
+    /// meet, and scheduling it like the others lets every transport apply it at the same
+    /// step.
+    SwitchTask(Task),
+}
+
+/// Which task the world is laid out for (REFERENCE §1.4). Here, not in the world crate,
+/// because a [`Perturbation::SwitchTask`] names one on the wire.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Task {
+    #[default]
+    Foraging,
+    Nest,
+}
+
+impl Task {
+    /// Both tasks.
+    pub const ALL: [Task; 2] = [Task::Foraging, Task::Nest];
+
+    /// The object kinds a swarm must sense and act on to do this task besides the hub
+    /// (which both tasks have): where items are found or taken, and the items. A
+    /// grammar or a phenotype lacking one cannot do the task. Written once: the world
+    /// lays these out, the configuration checks grammars against them.
+    pub fn objects(self) -> [ObjectKind; 2] {
+        match self {
+            Task::Foraging => [ObjectKind::Sites, ObjectKind::Food],
+            Task::Nest => [ObjectKind::Boundary, ObjectKind::Debris],
+        }
+    }
+
+    /// The other task.
+    pub fn other(self) -> Task {
+        match self {
+            Task::Foraging => Task::Nest,
+            Task::Nest => Task::Foraging,
+        }
+    }
+
+    /// `foraging` or `nest`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Task::Foraging => "foraging",
+            Task::Nest => "nest",
+        }
+    }
+}
+
+impl std::str::FromStr for Task {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "foraging" => Ok(Task::Foraging),
+            "nest" => Ok(Task::Nest),
+            other => Err(format!("unknown task '{other}' (expected foraging or nest)")),
+        }
+    }
+}
+
+impl std::fmt::Display for Task {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }

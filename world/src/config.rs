@@ -4,34 +4,9 @@ use geese_proto::limits::{max_radius, MAX_AGENTS, MAX_ITEMS};
 use geese_proto::{Geometry, Pos};
 use serde::{Deserialize, Serialize};
 
-/// Which task the world is laid out for.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
-#[serde(rename_all = "lowercase")]
-pub enum Task {
-    #[default]
-    Foraging,
-    Nest,
-}
-
-impl std::str::FromStr for Task {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "foraging" => Ok(Task::Foraging),
-            "nest" => Ok(Task::Nest),
-            other => Err(format!("unknown task '{other}' (expected foraging or nest)")),
-        }
-    }
-}
-
-impl std::fmt::Display for Task {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Task::Foraging => "foraging",
-            Task::Nest => "nest",
-        })
-    }
-}
+/// Which task the world is laid out for (defined with the wire types: a
+/// `SwitchTask` perturbation names one).
+pub use geese_proto::Task;
 
 /// Which world layout (REFERENCE §1.4).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]

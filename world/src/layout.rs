@@ -105,7 +105,6 @@ pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigErr
     let cfg = w.config().clone();
     let hub = w.add_object(ObjectKind::Hub, Pos::new(0, 0), BIG_RADIUS);
     let hub_pos = w.objects().nth(hub as usize).map(|o| o.info.pos).unwrap_or_default();
-    let items = cfg.item_count();
     // Before everything the rules place, so that those rules avoid them.
     for (i, &p) in cfg.fixed_obstacles.iter().enumerate() {
         if w.area_has_objects(p, cfg.obstacle_radius) {
@@ -116,14 +115,44 @@ pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigErr
         }
         w.add_object(ObjectKind::Obstacles, p, cfg.obstacle_radius);
     }
-    match (cfg.task, cfg.layout) {
-        (Task::Foraging, Layout::Reference) => {
-            if w.area_blocked(cfg.site, BIG_RADIUS) {
-                return Err(ConfigError::Invalid {
-                    field: "site",
-                    reason: format!("({}, {}) lies under a fixed obstacle", cfg.site.x, cfg.site.y),
-                });
+    if (cfg.task, cfg.layout) == (Task::Foraging, Layout::Reference) && w.area_blocked(cfg.site, BIG_RADIUS) {
+        return Err(ConfigError::Invalid {
+            field: "site",
+            reason: format!("({}, {}) lies under a fixed obstacle", cfg.site.x, cfg.site.y),
+        });
+    }
+    place_task(w, rng, cfg.task, hub_pos)?;
+    for _ in 0..cfg.obstacles {
+        if place_obstacle(w, rng, cfg.obstacle_radius).is_none() {
+            return Err(ConfigError::Invalid {
+                field: "obstacles",
+                reason: "no free place for another obstacle".into(),
+            });
+        }
+    }
+    let g = w.geometry();
+    for _ in 0..cfg.agents {
+        let pos = match cfg.start() {
+            Start::Hub => hub_pos,
+            Start::Random => {
+                Pos::new(rng.random_range(-g.half_w()..g.half_w()), rng.random_range(-g.half_h()..g.half_h()))
             }
+        };
+        let heading = rng.random::<f64>() * std::f64::consts::TAU;
+        w.add_body(pos, heading);
+    }
+    Ok(())
+}
+
+/// Lay out the items and places of `task` (sites and food, or debris and boundaries),
+/// as a fresh world has them: when the world is built, and when a `SwitchTask`
+/// perturbation brings the task in (with the world's perturbation stream, so the
+/// switched world is a function of the run seed).
+pub(crate) fn place_task(w: &mut World, rng: &mut ChaCha8Rng, task: Task, hub_pos: Pos) -> Result<(), ConfigError> {
+    let cfg = w.config().clone();
+    let items = cfg.item_count();
+    match (task, cfg.layout) {
+        (Task::Foraging, Layout::Reference) => {
             w.add_object(ObjectKind::Sites, cfg.site, BIG_RADIUS);
             for _ in 0..items {
                 w.add_object(ObjectKind::Food, cfg.site, BIG_RADIUS);
@@ -148,25 +177,6 @@ pub(crate) fn build(w: &mut World, rng: &mut ChaCha8Rng) -> Result<(), ConfigErr
                 place_ring(w, rng, ObjectKind::Boundary, cfg.boundary_distance)?;
             }
         }
-    }
-    for _ in 0..cfg.obstacles {
-        if place_obstacle(w, rng, cfg.obstacle_radius).is_none() {
-            return Err(ConfigError::Invalid {
-                field: "obstacles",
-                reason: "no free place for another obstacle".into(),
-            });
-        }
-    }
-    let g = w.geometry();
-    for _ in 0..cfg.agents {
-        let pos = match cfg.start() {
-            Start::Hub => hub_pos,
-            Start::Random => {
-                Pos::new(rng.random_range(-g.half_w()..g.half_w()), rng.random_range(-g.half_h()..g.half_h()))
-            }
-        };
-        let heading = rng.random::<f64>() * std::f64::consts::TAU;
-        w.add_body(pos, heading);
     }
     Ok(())
 }

@@ -29,7 +29,7 @@ use geese_proto::net::{
     LOSS_SALT_INTENT, NO_CELL,
 };
 use geese_proto::seed::{derive, Owner, Purpose};
-use geese_proto::{decode, encode, encode_sized, CodecError, Control, StepReport};
+use geese_proto::{decode, encode, encode_sized, CodecError, Control, Perturbation, StepReport};
 use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 
@@ -456,6 +456,15 @@ impl Server {
     fn hand_over_scheduled(&mut self) -> bool {
         let any = !self.scheduled.is_empty();
         for (at, change) in std::mem::take(&mut self.scheduled) {
+            if let Perturbation::SwitchTask(task) = change {
+                // Checked here, in arrival order, against the switches already
+                // scheduled: only the world knows which task will be running then.
+                if self.world.task_after(at) == task {
+                    tracing::warn!("control command rejected: SwitchTask to {task} at step {at}: that task is already running then");
+                    self.count_rejected();
+                    continue;
+                }
+            }
             self.world.schedule(at, change);
         }
         any
@@ -927,6 +936,29 @@ mod tests {
         assert!(s.world().regime().lateral_transfer);
         published(&s.next(t0));
         assert!(!s.world().regime().lateral_transfer, "applied at the start of step 2");
+    }
+
+    /// Issue 30.5: a control-plane switch to the task running at its step is refused
+    /// and counted; one to the other task applies between steps, as in-process.
+    #[test]
+    fn a_control_plane_task_switch_applies_and_one_to_the_running_task_is_refused() {
+        use geese_proto::{Perturbation::SwitchTask, Task};
+        let t0 = Instant::now();
+        let mut s = Server::new(spec(2, 3), t0).unwrap();
+        let a = range(0, 2);
+        join(&mut s, a, true);
+        published(&s.next(t0));
+        s.on_control(&encode(&Control::Schedule { at_step: 1, change: SwitchTask(Task::Foraging) }).unwrap());
+        s.on_control(&encode(&Control::Schedule { at_step: 1, change: SwitchTask(Task::Nest) }).unwrap());
+        s.on_control(&encode(&Control::Schedule { at_step: 2, change: SwitchTask(Task::Nest) }).unwrap());
+        answer(&mut s, a, 1);
+        report(s.next(t0));
+        assert_eq!(s.world().task(), Task::Foraging);
+        published(&s.next(t0));
+        assert_eq!(s.world().task(), Task::Nest, "applied at the start of step 2");
+        answer(&mut s, a, 2);
+        assert_eq!(report(s.next(t0)).net.hostile, 2, "foraging at 1 and nest at 2 refused");
+        assert_eq!(s.world().events().len(), 1);
     }
 
     #[test]

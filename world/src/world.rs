@@ -641,6 +641,7 @@ impl World {
             Perturbation::SetIp(ip) => self.regime.ip = ip.clamp(0.0, 1.0),
             Perturbation::SetLateralTransfer(on) => self.regime.lateral_transfer = on,
             Perturbation::SetGeneLoss(p) => self.regime.gene_loss = p.clamp(0.0, 1.0),
+            Perturbation::SwitchTask(task) => self.switch_task(task),
             Perturbation::KillFraction(f) => {
                 let mut live: Vec<AgentId> = self.bodies.iter().filter(|b| b.live).map(|b| b.id).collect();
                 let k = ((f.clamp(0.0, 1.0) * live.len() as f64).floor()) as usize;
@@ -654,6 +655,65 @@ impl World {
             }
         }
         unplaced
+    }
+
+    /// The task in force, changed by [`Perturbation::SwitchTask`].
+    pub fn task(&self) -> Task {
+        self.cfg.task
+    }
+
+    /// The task that will be in force after step `at` is resolved, given the switches
+    /// scheduled so far (the world's own view of its future, so that a switch asked for
+    /// on the control plane can be checked against the switches before it).
+    pub fn task_after(&self, at: u64) -> Task {
+        let mut switches: Vec<(u64, Task)> = self
+            .schedule
+            .iter()
+            .filter_map(|(t, p)| match p {
+                Perturbation::SwitchTask(k) if *t <= at => Some((*t, *k)),
+                _ => None,
+            })
+            .collect();
+        switches.sort_by_key(|&(t, _)| t);
+        switches.last().map_or(self.cfg.task, |&(_, k)| k)
+    }
+
+    /// Turn the world to `task` (issue 30.4): every item and place of the old task
+    /// leaves the grid and the agents' hands, the new task's are laid out as a fresh
+    /// world of that task has them (REFERENCE §1.4; drawn from the perturbation stream),
+    /// and the task % starts from 0 over the new items. Hub, obstacles and agents stay.
+    /// A switch to the task already in force changes nothing and says so: the
+    /// configuration and the control plane refuse one before it gets here.
+    fn switch_task(&mut self, task: Task) {
+        if task == self.cfg.task {
+            tracing::warn!(step = self.step, "SwitchTask to {task}: the world already runs it; nothing changes");
+            return;
+        }
+        let old = self.cfg.task.objects();
+        let gone: Vec<ObjectId> =
+            self.objects.iter().filter(|o| old.contains(&o.info.kind)).map(|o| o.info.id).collect();
+        for &id in &gone {
+            if self.objects[id as usize].registered {
+                self.deregister_object(id);
+            }
+        }
+        for b in &mut self.bodies {
+            b.carrying.retain(|o| !gone.contains(o));
+        }
+        for o in &mut self.objects {
+            o.dropped.retain(|d| !gone.contains(d));
+        }
+        self.cfg.task = task;
+        self.total_item_weight = 0;
+        self.delivered_weight = 0;
+        let hub = self.hub().pos;
+        let mut rng = std::mem::replace(&mut self.perturb_rng, ChaCha8Rng::seed_from_u64(0));
+        if let Err(e) = crate::layout::place_task(self, &mut rng, task, hub) {
+            // Only the paper layout's ring rule can fail (every place at its distance
+            // taken, by obstacles added since): the task runs with what was placed.
+            tracing::warn!(step = self.step, "SwitchTask to {task}: {e}");
+        }
+        self.perturb_rng = rng;
     }
 
     /// Mark an agent dead: its body idles and whatever it carried is dropped where it
@@ -913,6 +973,61 @@ mod tests {
         let rep = w.resolve(&[Some(far), Some(impostor)]);
         assert_eq!(rep.rejected, 2);
         assert!(w.bodies()[0].carrying.is_empty());
+    }
+
+    fn registered(w: &World, kind: ObjectKind) -> usize {
+        w.objects().filter(|o| o.registered && o.info.kind == kind).count()
+    }
+
+    /// Issue 30.4: a switch scheduled after step 2 takes the food and the site away
+    /// (from the floor, the hub and the agents' hands), lays out debris at the hub and
+    /// five boundaries, and the task % counts debris from 0; percepts show the new world
+    /// only. A switch back brings food and the site again; one to the running task
+    /// changes nothing.
+    #[test]
+    fn a_task_switch_replaces_items_and_places_and_restarts_the_task_pct() {
+        let mut w = world(Task::Foraging, 2);
+        let site = Pos::new(30, 30);
+        let food = w.objects_in(w.geometry().cell_of(site)).find(|o| o.kind == ObjectKind::Food).unwrap().id;
+        w.place_agent(0, site, 0.0);
+        w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Pick { object: food }])), None]);
+        w.place_agent(0, Pos::new(1, 1), 0.0);
+        let rep = w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Drop { object: food }])), None]);
+        assert_eq!(rep.task_pct, 1.0);
+        let food2 = w.objects_in(w.geometry().cell_of(site)).find(|o| o.kind == ObjectKind::Food).unwrap().id;
+        w.place_agent(1, site, 0.0);
+        w.schedule(3, Perturbation::SwitchTask(Task::Nest));
+        assert_eq!(w.task_after(2), Task::Foraging);
+        assert_eq!(w.task_after(3), Task::Nest);
+        let rep = w.resolve(&[None, Some(intent(&w, 1, 0.0, vec![Op::Pick { object: food2 }]))]);
+        assert_eq!(rep.step, 3);
+        // The switch came right after step 3: agent 1's food is gone with the rest.
+        assert_eq!(w.task(), Task::Nest);
+        assert!(w.bodies()[1].carrying.is_empty());
+        assert_eq!((registered(&w, ObjectKind::Food), registered(&w, ObjectKind::Sites)), (0, 0));
+        assert_eq!((registered(&w, ObjectKind::Debris), registered(&w, ObjectKind::Boundary)), (100, 5));
+        assert_eq!(w.task_pct(), 0.0);
+        assert!(w.percepts().iter().all(|p| p.objects.iter().all(|o| !Task::Foraging.objects().contains(&o.kind))));
+        assert_eq!(w.events().last().map(|e| e.0), Some(3), "logged for the viewer's marker at the step it followed");
+        // Debris into a boundary counts for the new task.
+        let debris =
+            w.objects_in(w.geometry().cell_of(Pos::new(0, 0))).find(|o| o.kind == ObjectKind::Debris).unwrap().id;
+        w.place_agent(0, Pos::new(0, 0), 0.0);
+        w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Pick { object: debris }])), None]);
+        let b = w.objects().find(|o| o.registered && o.info.kind == ObjectKind::Boundary).unwrap().info.pos;
+        w.place_agent(0, b, 0.0);
+        let rep = w.resolve(&[Some(intent(&w, 0, 0.0, vec![Op::Drop { object: debris }])), None]);
+        assert_eq!(rep.task_pct, 1.0);
+        // Back to foraging: the site and 100 food at it, nothing of the nest left.
+        w.perturb(Perturbation::SwitchTask(Task::Foraging));
+        assert_eq!((registered(&w, ObjectKind::Debris), registered(&w, ObjectKind::Boundary)), (0, 0));
+        assert_eq!((registered(&w, ObjectKind::Food), registered(&w, ObjectKind::Sites)), (100, 1));
+        assert_eq!(w.objects_in(w.geometry().cell_of(site)).filter(|o| o.kind == ObjectKind::Food).count(), 100);
+        assert_eq!(w.task_pct(), 0.0);
+        // The same task again: nothing changes.
+        let before = w.objects().count();
+        w.perturb(Perturbation::SwitchTask(Task::Foraging));
+        assert_eq!((w.objects().count(), registered(&w, ObjectKind::Food)), (before, 100));
     }
 
     #[test]

@@ -68,6 +68,105 @@ fn a_trial_steps_the_same_on_1_2_and_4_threads() {
     }
 }
 
+/// Issue 30.4: a trial whose task changes twice (foraging → nest → foraging, union
+/// grammar) steps the same on 1, 2 and 4 threads, and the task % follows the switch:
+/// it drops to 0 right after it, and items of the new task get delivered.
+#[test]
+fn a_trial_with_task_switches_steps_the_same_on_1_2_and_4_threads() {
+    use geese_orchestrator::config::Scheduled;
+    use geese_proto::Perturbation::SwitchTask;
+    let mut c = small(Task::Foraging, 5, 100, 900);
+    c.perturbations = vec![
+        Scheduled { at: 300, change: SwitchTask(Task::Nest) },
+        Scheduled { at: 600, change: SwitchTask(Task::Foraging) },
+    ];
+    let on = |threads: u32| {
+        let mut c = c.clone();
+        c.threads = Some(threads);
+        reports(c)
+    };
+    let one = on(1);
+    assert!(one.iter().any(|r| r.genetic_steps > 0), "no genetic step: the case checks nothing");
+    assert!(one[299].task_pct > 0.0, "nothing delivered before the switch: the drop checks nothing");
+    assert_eq!((one[300].step, one[300].task_pct), (301, 0.0), "the nest task starts from 0 after step 300");
+    assert!(one[599].task_pct > 0.0, "no debris delivered after the switch to nest");
+    assert_eq!(one[600].task_pct, 0.0, "foraging again starts from 0");
+    for threads in [2, 4] {
+        assert_eq!(one, on(threads), "{threads} threads differ from 1");
+    }
+}
+
+/// Issue 30: a switch beyond the run, a switch to the running task, a learner grammar
+/// that cannot express the new task and an unknown mutation rule are refused with
+/// messages naming the value; a fixed population whose trees name only the old task's
+/// objects is accepted, with a note.
+#[test]
+fn bad_switches_and_mutation_rules_are_refused_by_name() {
+    use geese_orchestrator::config::Scheduled;
+    use geese_proto::Perturbation::SwitchTask;
+    let refused = |c: RunConfig| c.validate().map(|_| ()).unwrap_err().to_string();
+    let with = |at: u64, to: Task| {
+        let mut c = small(Task::Foraging, 1, 10, 1000);
+        c.perturbations = vec![Scheduled { at, change: SwitchTask(to) }];
+        c
+    };
+    let e = refused(with(1000, Task::Nest));
+    assert!(e.starts_with("perturbations[0].at: SwitchTask at step 1000 is beyond the run"), "{e}");
+    let e = refused(with(200, Task::Foraging));
+    assert_eq!(
+        e,
+        "perturbations[0].change: SwitchTask to foraging at step 200: the world already runs the foraging task then"
+    );
+    let mut twice = with(200, Task::Nest);
+    twice.perturbations.push(Scheduled { at: 100, change: SwitchTask(Task::Nest) });
+    let e = refused(twice);
+    assert!(e.starts_with("perturbations[0].change: SwitchTask to nest at step 200"), "{e}");
+    let mut narrow = with(200, Task::Nest);
+    narrow.grammar = Some("betr-foraging-avoid".into());
+    let e = refused(narrow);
+    assert!(
+        e.contains("grammar betr-foraging-avoid cannot express the nest task (it lacks Boundary and Debris)"),
+        "{e}"
+    );
+    assert_eq!(with(200, Task::Nest).validate().expect("valid").grammar_name, "betr-union-avoid");
+    let e = RunConfig::from_toml("[[perturbations]]\nat = 5\nchange = { SwitchTask = \"garden\" }\n").unwrap_err();
+    assert!(e.contains("garden"), "{e}");
+    let e = RunConfig::from_toml("[learner]\nmutation = \"heat\"\n").unwrap_err();
+    assert!(e.contains("heat"), "{e}");
+    let mut fixed = with(200, Task::Nest);
+    fixed.population =
+        Some(format!("{}/../populations/foraging-five-behaviours.json", env!("CARGO_MANIFEST_DIR")).into());
+    let spec = fixed.validate().expect("a fixed population meets the new task as it is");
+    assert!(
+        spec.notes.iter().any(|n| n.contains("SwitchTask to nest") && n.contains("Boundary, Debris")),
+        "{:?}",
+        spec.notes
+    );
+    // The geese CLI names a bad --mutation and a bad task in a config file.
+    let geese = geese_tests::bin_path("geese-orchestrator", "geese");
+    let out = Command::new(&geese).args(["run", "--steps", "5", "-q", "--mutation", "heat"]).output().expect("runs");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--mutation: unknown mutation rule 'heat'"));
+}
+
+/// Issue 30.3: the stress mutation rule leaves the default trajectory alone when not
+/// chosen, and changes it when chosen (the mutation draws differ once an agent's
+/// fitness has stalled), the same on 1 and 2 threads.
+#[test]
+fn stress_mutation_changes_the_trajectory_only_when_chosen() {
+    let base = small(Task::Foraging, 4, 60, 600);
+    let fixed = reports(base.clone());
+    let mut named = base.clone();
+    named.learner.mutation = geese_agent::MutationRule::Fixed;
+    assert_eq!(fixed, reports(named));
+    let mut stress = base.clone();
+    stress.learner.mutation = geese_agent::MutationRule::Stress;
+    let one = reports(stress.clone());
+    assert_ne!(fixed, one, "the stress rule changed nothing");
+    stress.threads = Some(2);
+    assert_eq!(one, reports(stress));
+}
+
 #[test]
 fn learning_happens_and_lateral_transfer_switch_works() {
     let on = reports(small(Task::Foraging, 3, 100, 400));

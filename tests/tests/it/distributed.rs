@@ -180,6 +180,24 @@ fn hosted_agents_and_perturbations_equal_in_process() {
     assert_all_gone(&pids_wide);
 }
 
+/// Issue 30.5: the world server applies a change of task (foraging → nest → foraging)
+/// at the same step as the in-process trial, with the same trajectory.
+#[test]
+fn a_task_switch_over_zenoh_equals_in_process() {
+    let _one_at_a_time = serial();
+    let mut cfg = config(24, 240, 12, Layout::Reference);
+    cfg.world.grid = 5;
+    cfg.perturbations = vec![
+        Scheduled { at: 80, change: Perturbation::SwitchTask(geese_world::Task::Nest) },
+        Scheduled { at: 160, change: Perturbation::SwitchTask(geese_world::Task::Foraging) },
+    ];
+    let expected = in_process(&cfg);
+    assert_eq!((expected[80].task_pct, expected[160].task_pct), (0.0, 0.0), "the switches restart the task %");
+    let (got, pids) = distributed(&cfg, &options(3, Some(8)));
+    assert_eq!(expected, step_reports(&got));
+    assert_all_gone(&pids);
+}
+
 #[test]
 fn at_gs_2_a_zenoh_run_equals_in_process_and_loses_no_gene() {
     let _one_at_a_time = serial();
