@@ -70,7 +70,22 @@ pub enum Fusion {
     KeepDeliverers,
     /// Both: the delivery term and keeping the wirings that delivered.
     DeliveryKeep,
+    /// Patience: a combine agent takes part in a genetic step only once its wiring is
+    /// [`PATIENCE`] steps old (its pool keeps the first ST genes it meets meanwhile).
+    /// Faithfully a wiring lives about four steps, so its fitness is a handful of cells
+    /// and the genetic step's winner is mostly an offspring ranked by its D: selection
+    /// barely sees what a wiring does.
+    Patient,
+    /// Patience and the delivery term: a wiring is judged over at least [`PATIENCE`]
+    /// steps, by what it explored and what it delivered.
+    PatientDelivery,
 }
+
+/// Age a combine wiring must reach before a genetic step may replace it under
+/// [`Fusion::Patient`] and [`Fusion::PatientDelivery`]: long enough to go from the
+/// site to the hub and back (site at distance 30, a few cells a tick), half the
+/// reference GEESE-BT learner's 200.
+pub const PATIENCE: u32 = 100;
 
 /// Fitness a combine agent gains per unit of weight it delivers under [`Fusion::Delivery`]
 /// (a food item weighs 5): one delivery (+50) outweighs the cells an explorer covers in a
@@ -78,7 +93,14 @@ pub enum Fusion {
 pub const DELIVERY_WEIGHT: f64 = 10.0;
 
 impl Fusion {
-    pub const ALL: [Fusion; 4] = [Fusion::Faithful, Fusion::Delivery, Fusion::KeepDeliverers, Fusion::DeliveryKeep];
+    pub const ALL: [Fusion; 6] = [
+        Fusion::Faithful,
+        Fusion::Delivery,
+        Fusion::KeepDeliverers,
+        Fusion::DeliveryKeep,
+        Fusion::Patient,
+        Fusion::PatientDelivery,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -86,12 +108,19 @@ impl Fusion {
             Fusion::Delivery => "delivery",
             Fusion::KeepDeliverers => "keep-deliverers",
             Fusion::DeliveryKeep => "delivery-keep",
+            Fusion::Patient => "patient",
+            Fusion::PatientDelivery => "patient-delivery",
         }
     }
 
     /// Does the combine fitness reward delivered weight?
     pub fn rewards_delivery(self) -> bool {
-        matches!(self, Fusion::Delivery | Fusion::DeliveryKeep)
+        matches!(self, Fusion::Delivery | Fusion::DeliveryKeep | Fusion::PatientDelivery)
+    }
+
+    /// Must a combine wiring reach [`PATIENCE`] steps before a genetic step?
+    pub fn is_patient(self) -> bool {
+        matches!(self, Fusion::Patient | Fusion::PatientDelivery)
     }
 
     /// Does a combine agent keep a wiring that delivered?
@@ -1084,6 +1113,16 @@ impl Learner {
         // 7–8. genetic operators and update. A pool that reaches ST is used and emptied
         // at once, so the survivors join it only as candidates borrowing their genomes.
         let storage_ready = match self.triggers {
+            Triggers::Storage if self.cfg.fusion.is_patient() && matches!(self.kind, Kind::Combine(_)) => {
+                if self.age < PATIENCE {
+                    // Not yet: keep the first ST genes met (the pool would only grow).
+                    if self.pool.len() < self.st {
+                        self.keep_joining(genes, cache);
+                    }
+                    return self.intent(stats);
+                }
+                true
+            }
             Triggers::Storage => true,
             Triggers::GeeseBt => {
                 self.gene.fitness >= 0.0 && self.age > self.cfg.stagnation_age && self.view.delivered <= 0

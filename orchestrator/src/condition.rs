@@ -89,7 +89,7 @@ knobs! {
     /// Fitness terms of the learners, e.g. `E+B`, `D+E+C+F` (Fig. 3).
     Terms = "terms": Kind::Text,
     /// How the Multi-GEESE combine phase learns: faithful, delivery, keep-deliverers,
-    /// delivery-keep (issue 30.1).
+    /// delivery-keep, patient, patient-delivery (issue 30.1).
     Fusion = "fusion": Kind::Text,
     /// Multi-GEESE phase: unset runs collect then combine; `one` is one-phase fusion
     /// (issue 30.2); `collect` runs the collect phase alone.

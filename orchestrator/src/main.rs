@@ -139,7 +139,7 @@ struct RunArgs {
     #[arg(long)]
     terms: Option<geese_agent::FitnessTerms>,
     /// How the Multi-GEESE combine phase learns: faithful (the reference code's, the
-    /// default), delivery, keep-deliverers or delivery-keep (issue 30.1,
+    /// default), delivery, keep-deliverers, delivery-keep, patient or patient-delivery (issue 30.1,
     /// docs/research/fusion-takeoff.md).
     #[arg(long)]
     fusion: Option<geese_agent::learner::Fusion>,

@@ -2,6 +2,7 @@
 mod campaign;
 mod core;
 mod distributed;
+mod fusion;
 mod fuzz;
 mod multihost;
 mod protocol;
