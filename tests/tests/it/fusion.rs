@@ -87,7 +87,9 @@ fn fusion_variants_are_deterministic_and_act_only_from_the_first_delivery() {
         let diverge = faithful.iter().zip(&a).position(|(x, y)| x != y);
         let diverge = diverge.unwrap_or_else(|| panic!("{v}: no different from the faithful port in {steps} steps"));
         if v.is_patient() {
-            let young = &a[..geese_agent::learner::PATIENCE as usize];
+            // A wiring is `age` steps old after its `age`-th step: at step PATIENCE the
+            // first ones may take part.
+            let young = &a[..geese_agent::learner::PATIENCE as usize - 1];
             assert!(young.iter().all(|r| r.genetic_steps == 0), "{v}: a genetic step before any wiring was old enough");
             assert!(faithful[..young.len()].iter().any(|r| r.genetic_steps > 0), "faithful: checks nothing");
             assert!(a.iter().any(|r| r.genetic_steps > 0), "{v}: no genetic step at all");
