@@ -12,7 +12,7 @@ thr = float(sys.argv[2]) if len(sys.argv) > 2 else 80.0
 c = sqlite3.connect(db)
 rows = c.execute(
     "select id, condition, task, seed, final_task_pct, wall_seconds, stage_wall_seconds "
-    "from trials where status='done' order by condition_index, task, seed").fetchall()
+    "from trials where status='done' order by condition, task, seed").fetchall()
 by = {}
 for tid, cond, task, seed, fixed_final, wall, stage_wall in rows:
     curve = c.execute("select step, task_pct from learning_steps where trial=? order by step", (tid,)).fetchall()
