@@ -44,6 +44,111 @@ pub enum FitnessVariant {
     Paper,
 }
 
+/// How a Multi-GEESE combine phase learns its wirings (issue 30.1; research record
+/// `docs/research/fusion-takeoff.md`). The faithful port is the default; every other
+/// variant changes only what a combine agent does (collect agents and the other
+/// algorithms are untouched), and only through the agent's own experience: no variant
+/// tells an agent where the hub, the site or an item is.
+///
+/// The combine phase is bimodal under every semantics of the reference code (NOTES.md,
+/// issue 16): its genes live about four steps, its fitness E + B ranks explorers first,
+/// and the wirings that delivered are lost late in a run. The variants test the
+/// hypotheses that the fitness, or the loss of delivering wirings, decides it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Fusion {
+    /// The reference code's combine phase (fitness 0.1·R + E + B, the storage trigger).
+    #[default]
+    Faithful,
+    /// The combine fitness adds a delivery term, [`DELIVERY_WEIGHT`] per unit of weight
+    /// the agent dropped into a drop zone under its current wiring: a task term, so a
+    /// wiring that delivers outranks an explorer in its cell-mates' pools.
+    Delivery,
+    /// Elitism by experience: a combine agent whose current wiring has delivered keeps
+    /// it (no genetic step, incoming genes ignored) while still offering it to its
+    /// cell-mates, so a delivering wiring is never lost to churn.
+    KeepDeliverers,
+    /// Both: the delivery term and keeping the wirings that delivered.
+    DeliveryKeep,
+    /// Patience: a combine agent takes part in a genetic step only once its wiring is
+    /// [`PATIENCE`] steps old (its pool keeps the first ST genes it meets meanwhile).
+    /// Faithfully a wiring lives about four steps, so its fitness is a handful of cells
+    /// and the genetic step's winner is mostly an offspring ranked by its D: selection
+    /// barely sees what a wiring does.
+    Patient,
+    /// Patience and the delivery term: a wiring is judged over at least [`PATIENCE`]
+    /// steps, by what it explored and what it delivered.
+    PatientDelivery,
+}
+
+/// Age a combine wiring must reach before a genetic step may replace it under
+/// [`Fusion::Patient`] and [`Fusion::PatientDelivery`]: long enough to go from the
+/// site to the hub and back (site at distance 30, a few cells a tick), half the
+/// reference GEESE-BT learner's 200.
+pub const PATIENCE: u32 = 100;
+
+/// Fitness a combine agent gains per unit of weight it delivers under [`Fusion::Delivery`]
+/// (a food item weighs 5): one delivery (+50) outweighs the cells an explorer covers in a
+/// gene's life of a few steps (E ≤ 100 cells in the 10 × 10 grid), which is the point.
+pub const DELIVERY_WEIGHT: f64 = 10.0;
+
+impl Fusion {
+    pub const ALL: [Fusion; 6] = [
+        Fusion::Faithful,
+        Fusion::Delivery,
+        Fusion::KeepDeliverers,
+        Fusion::DeliveryKeep,
+        Fusion::Patient,
+        Fusion::PatientDelivery,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Fusion::Faithful => "faithful",
+            Fusion::Delivery => "delivery",
+            Fusion::KeepDeliverers => "keep-deliverers",
+            Fusion::DeliveryKeep => "delivery-keep",
+            Fusion::Patient => "patient",
+            Fusion::PatientDelivery => "patient-delivery",
+        }
+    }
+
+    /// Does the combine fitness reward delivered weight?
+    pub fn rewards_delivery(self) -> bool {
+        matches!(self, Fusion::Delivery | Fusion::DeliveryKeep | Fusion::PatientDelivery)
+    }
+
+    /// Must a combine wiring reach [`PATIENCE`] steps before a genetic step?
+    pub fn is_patient(self) -> bool {
+        matches!(self, Fusion::Patient | Fusion::PatientDelivery)
+    }
+
+    /// Does a combine agent keep a wiring that delivered?
+    pub fn keeps_deliverers(self) -> bool {
+        matches!(self, Fusion::KeepDeliverers | Fusion::DeliveryKeep)
+    }
+
+    fn is_faithful(&self) -> bool {
+        *self == Fusion::Faithful
+    }
+}
+
+impl std::fmt::Display for Fusion {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Fusion {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Fusion::ALL.into_iter().find(|v| v.name() == s).ok_or_else(|| {
+            let names: Vec<&str> = Fusion::ALL.iter().map(|v| v.name()).collect();
+            format!("unknown fusion variant '{s}' (expected one of: {})", names.join(", "))
+        })
+    }
+}
+
 /// Learner parameters; defaults are the paper's Sec.-5 settings (REFERENCE §5.1).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -71,6 +176,14 @@ pub struct LearnerConfig {
     /// GE parameters of the Multi-GEESE combine phase (`test_new.txt`: genomes up to
     /// 500 codons, crossover probability 0.1; REFERENCE §5.1).
     pub combine_ge: GeParams,
+    /// How the Multi-GEESE combine phase learns ([`Fusion`]); the faithful port unless set.
+    #[serde(skip_serializing_if = "Fusion::is_faithful")]
+    pub fusion: Fusion,
+    /// One-phase fusion ([`crate::program::Phase::One`]): an agent starts wiring once its
+    /// GeneDict holds every controller class and no entry has changed for this many
+    /// steps (its collection has settled).
+    #[serde(skip_serializing_if = "is_default_settle")]
+    pub one_phase_settle: u32,
     /// How an agent's mutation probability moves (issue 30.3): `fixed` (the paper's,
     /// GE's `mutation_prob` always) or `stress` ([`StressMutation`]).
     pub mutation: MutationRule,
@@ -177,6 +290,17 @@ pub fn default_st(multi_geese: bool) -> usize {
     }
 }
 
+/// Steps a complete GeneDict must stay unchanged before a one-phase agent starts wiring
+/// ([`LearnerConfig::one_phase_settle`]). A GeneDict completes within the first hundred
+/// steps or so, with whatever genes first succeeded; later entries replace an earlier one
+/// only when fitter, ever more rarely, so a pause of this length says the collection
+/// has levelled off (issue 30.2, `docs/research/one-phase-fusion.md`).
+pub const ONE_PHASE_SETTLE: u32 = 500;
+
+fn is_default_settle(v: &u32) -> bool {
+    *v == ONE_PHASE_SETTLE
+}
+
 /// Age after which a GEESE-BT agent with no positive fitness takes fresh individuals.
 pub const GEESE_BT_STAGNATION_AGE: u32 = 100;
 
@@ -196,6 +320,8 @@ impl Default for LearnerConfig {
             combine_ge: GeParams { max_genome_length: 500, crossover_prob: 0.1, ..GeParams::default() },
             mutation: MutationRule::Fixed,
             stress: StressMutation::default(),
+            fusion: Fusion::Faithful,
+            one_phase_settle: ONE_PHASE_SETTLE,
         }
     }
 }
@@ -307,10 +433,12 @@ fn tree_of(ind: &Individual, kind: &Kind) -> Result<Bt, BuildError> {
 ///
 /// With shared gene objects (`shared`) a stored gene is compared by its fitness as it
 /// stands now, and the entry takes the current gene's fitness field.
-fn store_action(dict: &mut GeneDict, shared: Option<&mut SharedGenes>, tree: &Bt, gene: &Individual) {
+///
+/// Returns whether the GeneDict changed (one-phase fusion waits for it to settle).
+fn store_action(dict: &mut GeneDict, shared: Option<&mut SharedGenes>, tree: &Bt, gene: &Individual) -> bool {
     let mut acts = tree.actions();
-    let (Some((leaf, Status::Success)), None) = (acts.next(), acts.next()) else { return };
-    let Some(key) = leaf.class_key() else { return };
+    let (Some((leaf, Status::Success)), None) = (acts.next(), acts.next()) else { return false };
+    let Some(key) = leaf.class_key() else { return false };
     let field = shared.as_ref().and_then(|sh| sh.dict.get(key));
     let better = dict.get(key).is_none_or(|s| field.map_or(s.fitness, |c| c.get()) < gene.fitness);
     if better {
@@ -320,8 +448,10 @@ fn store_action(dict: &mut GeneDict, shared: Option<&mut SharedGenes>, tree: &Bt
             if let Some(sh) = shared {
                 sh.dict.insert(key.to_string(), sh.cell.clone());
             }
+            return true;
         }
     }
+    false
 }
 
 /// Build the behaviour tree of a valid individual.
@@ -525,6 +655,20 @@ pub struct Learner {
     stress: f64,
     /// The fitness the outgoing gene reached at the last genetic step (`stress` rule).
     reached: Option<f64>,
+    /// One-phase fusion, while this agent still collects: when it starts wiring.
+    one_phase: Option<Box<OnePhase>>,
+    /// One-phase fusion (both modes): map every received gene with this agent's own
+    /// grammar. Cell-mates may be collecting or wiring, and a gene's claimed mapping is
+    /// its sender's grammar's; read with the receiver's grammar, a codon string of the
+    /// other mode is a new individual of the receiver's (GE genomes are plain integers).
+    remap: bool,
+}
+
+/// A one-phase agent that still collects (issue 30.2): the combine grammar it will wire
+/// with, and the step its GeneDict last changed.
+struct OnePhase {
+    combine: Arc<Grammar>,
+    changed_at: u64,
 }
 
 /// What the learners of one process (the in-process trial, or one agent process) share.
@@ -707,10 +851,13 @@ impl ReceivedGenes {
     /// How a received gene maps: the sender's mapping when it is plausible — a valid
     /// genome uses between one codon and all of them and has a depth — and mapped here
     /// otherwise.
-    fn mapping<G: Gene>(&mut self, grammar: &Grammar, g: &G, params: &ge::GeParams) -> Received {
+    ///
+    /// `remap`: map it here whatever the claim (one-phase fusion, whose cell-mates may
+    /// map with another grammar).
+    fn mapping<G: Gene>(&mut self, grammar: &Grammar, g: &G, params: &ge::GeParams, remap: bool) -> Received {
         let m = g.mapping();
         let plausible = !m.valid || ((1..=g.genome().len()).contains(&(m.used_codons as usize)) && m.depth >= 1);
-        if plausible {
+        if plausible && !remap {
             return if m.valid { Received::Claimed } else { Received::Invalid };
         }
         let genome = g.shared().map_or_else(|| Arc::from(g.genome()), Arc::clone);
@@ -726,7 +873,7 @@ impl ReceivedGenes {
     /// [`ReceivedGenes::mapping`] says, as an individual of its own.
     #[cfg(test)]
     fn individual(&mut self, grammar: &Grammar, g: &GeneMsg, params: &ge::GeParams) -> Individual {
-        match self.mapping(grammar, g, params) {
+        match self.mapping(grammar, g, params, false) {
             Received::Claimed => candidate(g).take(),
             Received::Invalid => Individual { genome: g.genome.clone(), ..Individual::default() },
             Received::Mapped(mut ind) => {
@@ -785,10 +932,15 @@ impl Learner {
         let mut rng_ge = rng(Purpose::Evolution);
         let mut view = View::new(geom, id);
         view.memory.insert(hub);
+        let mut one_phase = None;
         let (kind, fixed_tree) = match role {
             Role::BetrGeese => (Kind::BetrGeese, None),
             Role::GeeseBt => (Kind::GeeseBt, None),
             Role::Collect => (Kind::Collect(GeneDict::new()), None),
+            Role::OnePhase(combine) => {
+                one_phase = Some(Box::new(OnePhase { combine, changed_at: 0 }));
+                (Kind::Collect(GeneDict::new()), None)
+            }
             Role::Combine(d) => (Kind::Combine(d), None),
             Role::Fixed(t) => (Kind::Fixed, Some(t)),
         };
@@ -852,6 +1004,8 @@ impl Learner {
             shared: None,
             stress: 0.0,
             reached: None,
+            remap: one_phase.is_some(),
+            one_phase,
             view,
             cfg,
             grammar,
@@ -1035,7 +1189,22 @@ impl Learner {
         }
         // 5. Multi-GEESE collect: the GeneDict update.
         if let Kind::Collect(dict) = &mut self.kind {
-            store_action(dict, self.shared.as_deref_mut(), &self.tree, &self.gene);
+            let changed = store_action(dict, self.shared.as_deref_mut(), &self.tree, &self.gene);
+            if let Some(op) = &mut self.one_phase {
+                if changed {
+                    op.changed_at = self.step;
+                } else if self.step.saturating_sub(op.changed_at) >= u64::from(self.cfg.one_phase_settle)
+                    && crate::program::is_complete(dict)
+                {
+                    self.start_wiring();
+                    return self.intent(stats);
+                }
+            }
+        }
+        // Fusion variants that keep a wiring which delivered: no genetic step, and the
+        // genes that arrive are not stored (the pool would only grow).
+        if self.cfg.fusion.keeps_deliverers() && self.view.delivered > 0 && matches!(self.kind, Kind::Combine(_)) {
+            return self.intent(stats);
         }
         // 6. sense: lateral transfer through the IP filter; its survivors join the pool
         //    (`cache.lt.joining`).
@@ -1047,6 +1216,16 @@ impl Learner {
         // 7–8. genetic operators and update. A pool that reaches ST is used and emptied
         // at once, so the survivors join it only as candidates borrowing their genomes.
         let storage_ready = match self.triggers {
+            Triggers::Storage if self.cfg.fusion.is_patient() && matches!(self.kind, Kind::Combine(_)) => {
+                if self.age < PATIENCE {
+                    // Not yet: keep the first ST genes met (the pool would only grow).
+                    if self.pool.len() < self.st {
+                        self.keep_joining(genes, cache);
+                    }
+                    return self.intent(stats);
+                }
+                true
+            }
             Triggers::Storage => true,
             Triggers::GeeseBt => {
                 self.gene.fitness >= 0.0 && self.age > self.cfg.stagnation_age && self.view.delivered <= 0
@@ -1077,6 +1256,56 @@ impl Learner {
         self.intent(stats)
     }
 
+    /// One-phase fusion: this collect agent's GeneDict is complete and has settled, so
+    /// from now on it evolves wirings of it (issue 30.2). Its GeneDict is frozen as the
+    /// combine phase's is; it takes a fresh random wiring as its gene (from its own
+    /// evolution stream), empties its pool of collect genes, and starts a gene's life
+    /// (age, explored cells and delivered weight from zero; the collect gene's fitness
+    /// is the carry-over R, as at any gene change).
+    #[cold]
+    #[inline(never)]
+    fn start_wiring(&mut self) {
+        let Some(op) = self.one_phase.take() else { return };
+        let Kind::Collect(dict) = &self.kind else { return };
+        let kind = Kind::Combine(Arc::new(dict.clone()));
+        let p = params(&self.cfg, &kind);
+        let mut gene = ge::random_individual(&op.combine, p, &mut self.rng_ge);
+        let tree = match tree_of(&gene, &kind) {
+            Ok(t) => t,
+            Err(e) => {
+                // Should a wiring not build (the run's combine grammar names a leaf the
+                // engine lacks), the agent goes on collecting for good rather than stop.
+                tracing::warn!(agent = self.id, "one-phase wiring does not build, the agent keeps collecting: {e}");
+                return;
+            }
+        };
+        self.kind = kind;
+        self.grammar = op.combine;
+        self.carry = self.fitness();
+        gene.fitness = match self.cfg.fitness {
+            FitnessVariant::Code => 0.0,
+            FitnessVariant::Paper => gene.fitness,
+        };
+        if let Some(sh) = &mut self.shared {
+            sh.cell = FitnessCell::new(gene.fitness);
+            sh.pool.clear();
+            sh.dict.clear();
+        }
+        self.pool.clear();
+        self.view.delivered = 0;
+        self.gene_digest = genome_digest(&gene.genome);
+        self.gene = gene;
+        self.class = tree.behaviour_class();
+        self.tree = tree;
+        self.visited.clear();
+        self.age = 0;
+    }
+
+    /// Is this agent wiring (a combine agent, or a one-phase agent that has switched)?
+    pub fn is_wiring(&self) -> bool {
+        matches!(self.kind, Kind::Combine(_))
+    }
+
     /// The running fitness after this tick (REFERENCE §6.5, §6.7): carry-over plus the
     /// terms in force.
     #[inline]
@@ -1103,6 +1332,9 @@ impl Learner {
         }
         if t.f {
             a += self.view.delivered as f64;
+        }
+        if self.cfg.fusion.rewards_delivery() && matches!(self.kind, Kind::Combine(_)) {
+            a += DELIVERY_WEIGHT * self.view.delivered as f64;
         }
         a
     }
@@ -1185,7 +1417,7 @@ impl Learner {
                     None => Joining::Own,
                     Some(i) => {
                         let g = &genes[i as usize];
-                        match cache.received.mapping(&self.grammar, g, params(&self.cfg, &self.kind)) {
+                        match cache.received.mapping(&self.grammar, g, params(&self.cfg, &self.kind), self.remap) {
                             Received::Invalid => {
                                 *lost += 1;
                                 continue;

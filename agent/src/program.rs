@@ -100,6 +100,11 @@ pub enum Phase {
     Collect,
     /// AAR wiring of the GeneDict's controllers (§7.2).
     Combine,
+    /// One-phase fusion (issue 30.2, the paper's Section 8): every agent collects as in
+    /// the collect phase and, once its own GeneDict is complete and has settled
+    /// ([`crate::LearnerConfig::one_phase_settle`]), evolves wirings of it as in the
+    /// combine phase, in the same run: no hand-over.
+    One,
 }
 
 impl std::str::FromStr for Phase {
@@ -108,7 +113,8 @@ impl std::str::FromStr for Phase {
         match s {
             "collect" => Ok(Phase::Collect),
             "combine" => Ok(Phase::Combine),
-            other => Err(format!("unknown phase '{other}' (expected collect or combine)")),
+            "one" => Ok(Phase::One),
+            other => Err(format!("unknown phase '{other}' (expected collect, combine or one)")),
         }
     }
 }
@@ -118,6 +124,7 @@ impl std::fmt::Display for Phase {
         f.write_str(match self {
             Phase::Collect => "collect",
             Phase::Combine => "combine",
+            Phase::One => "one",
         })
     }
 }
@@ -247,6 +254,12 @@ pub const ACTION_CLASSES: [&str; 8] = [
 /// The controller slots of the combine grammar (§3.5 productions 18–22).
 const CONTROLLER_SLOTS: [&str; 5] =
     ["ExploreNormal", "MoveTowardsNormal", "MoveAwayNormal", "CompositeSingleCarry", "CompositeDrop"];
+
+/// Does a GeneDict hold a gene for every controller slot of the combine grammar? (A
+/// one-phase agent wires only then: an empty slot is an always-FAILURE leaf.)
+pub fn is_complete(dict: &GeneDict) -> bool {
+    CONTROLLER_SLOTS.iter().all(|k| dict.contains_key(*k))
+}
 
 /// One member of a population file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -420,7 +433,20 @@ impl Program {
                     }
                     dicts.push(Arc::new(d.clone()));
                 }
-                Ok(Prepared::Learn { algorithm: *algorithm, phase: *phase, dicts })
+                let combine = match (*algorithm, *phase) {
+                    (Algorithm::MultiGeese, Some(Phase::One)) => {
+                        let name = Algorithm::MultiGeese.grammar(Some(Phase::Combine), task);
+                        let text = crate::grammars::builtin(&name).ok_or_else(|| ProgramError::Agent {
+                            agent: 0,
+                            reason: format!("one-phase fusion needs the built-in grammar {name}"),
+                        })?;
+                        let g = ge::Grammar::parse(text)
+                            .map_err(|e| ProgramError::Agent { agent: 0, reason: format!("grammar {name}: {e}") })?;
+                        Some(Arc::new(g))
+                    }
+                    _ => None,
+                };
+                Ok(Prepared::Learn { algorithm: *algorithm, phase: *phase, dicts, combine })
             }
             Program::Fixed { strategy, members } => {
                 if members.is_empty() {
@@ -444,8 +470,17 @@ impl Program {
 
 /// A [`Program`] made ready: trees built, GeneDicts shared.
 pub enum Prepared {
-    Learn { algorithm: Algorithm, phase: Option<Phase>, dicts: Vec<Arc<GeneDict>> },
-    Fixed { strategy: Strategy, trees: Vec<Bt> },
+    /// `combine`: one-phase fusion's combine grammar, which its agents switch to.
+    Learn {
+        algorithm: Algorithm,
+        phase: Option<Phase>,
+        dicts: Vec<Arc<GeneDict>>,
+        combine: Option<Arc<ge::Grammar>>,
+    },
+    Fixed {
+        strategy: Strategy,
+        trees: Vec<Bt>,
+    },
 }
 
 /// What one agent does.
@@ -456,6 +491,8 @@ pub enum Role {
     Collect,
     /// Multi-GEESE combine with the agent's own (fixed) GeneDict.
     Combine(Arc<GeneDict>),
+    /// One-phase fusion: collect, then wire with this combine grammar (issue 30.2).
+    OnePhase(Arc<ge::Grammar>),
     /// A non-evolving agent ticking this tree.
     Fixed(Bt),
 }
@@ -471,6 +508,7 @@ impl Prepared {
                 // `prepare` checked there is at least one.
                 Role::Combine(dicts[id as usize % dicts.len()].clone())
             }
+            Prepared::Learn { combine: Some(g), .. } => Role::OnePhase(g.clone()),
             Prepared::Learn { .. } => Role::Collect,
             Prepared::Fixed { strategy: Strategy::TopAgents, trees } => {
                 Role::Fixed(trees[id as usize % trees.len()].fresh())

@@ -88,6 +88,12 @@ knobs! {
     Algorithm = "algorithm": Kind::Text,
     /// Fitness terms of the learners, e.g. `E+B`, `D+E+C+F` (Fig. 3).
     Terms = "terms": Kind::Text,
+    /// How the Multi-GEESE combine phase learns: faithful, delivery, keep-deliverers,
+    /// delivery-keep, patient, patient-delivery (issue 30.1).
+    Fusion = "fusion": Kind::Text,
+    /// Multi-GEESE phase: unset runs collect then combine; `one` is one-phase fusion
+    /// (issue 30.2); `collect` runs the collect phase alone.
+    Phase = "phase": Kind::Text,
     /// Fixed-population test: this fraction of the best members (of `population`, or
     /// of the population the trial's own learning run ended with; Figs. 8b, 9).
     Sample = "sample": Kind::Float(0.0, 1.0),
@@ -328,6 +334,12 @@ impl Condition {
         }
         if let Some(Level::Text(a)) = self.get(Knob::Algorithm) {
             c.algorithm = a.parse().map_err(|e: String| knob_err(Knob::Algorithm, e))?;
+        }
+        if let Some(Level::Text(p)) = self.get(Knob::Phase) {
+            c.phase = Some(p.parse().map_err(|e: String| knob_err(Knob::Phase, e))?);
+        }
+        if let Some(Level::Text(f)) = self.get(Knob::Fusion) {
+            c.learner.fusion = f.parse().map_err(|e: String| knob_err(Knob::Fusion, e))?;
         }
         if let Some(Level::Text(t)) = self.get(Knob::Terms) {
             c.learner.terms = Some(geese_agent::FitnessTerms::parse(t).map_err(|e| knob_err(Knob::Terms, e))?);

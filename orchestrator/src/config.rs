@@ -450,6 +450,7 @@ impl RunConfig {
         };
         let stage = match (self.algorithm, self.phase) {
             (Algorithm::MultiGeese, Some(Phase::Combine)) => "combine",
+            (Algorithm::MultiGeese, Some(Phase::One)) => "one-phase",
             (Algorithm::MultiGeese, _) => "collect",
             _ => "learn",
         };
@@ -478,7 +479,7 @@ impl RunConfig {
             let several_actions = match &program {
                 Program::Fixed { .. } => true,
                 Program::Learn { algorithm, phase, .. } => {
-                    *algorithm == Algorithm::GeeseBt || *phase == Some(Phase::Combine)
+                    *algorithm == Algorithm::GeeseBt || matches!(phase, Some(Phase::Combine | Phase::One))
                 }
             };
             self.world.percept_reach = Some(u32::from(several_actions));

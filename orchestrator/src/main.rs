@@ -147,6 +147,11 @@ struct RunArgs {
     /// algorithm's own).
     #[arg(long)]
     terms: Option<geese_agent::FitnessTerms>,
+    /// How the Multi-GEESE combine phase learns: faithful (the reference code's, the
+    /// default), delivery, keep-deliverers, delivery-keep, patient or patient-delivery (issue 30.1,
+    /// docs/research/fusion-takeoff.md).
+    #[arg(long)]
+    fusion: Option<geese_agent::learner::Fusion>,
     /// World layout (default reference; a fixed --population without --config runs
     /// in the paper's fixed-agent world).
     #[arg(long, value_enum)]
@@ -259,6 +264,9 @@ impl RunArgs {
         }
         if let Some(v) = self.terms {
             c.learner.terms = Some(v);
+        }
+        if let Some(v) = self.fusion {
+            c.learner.fusion = v;
         }
         if let Some(l) = self.layout {
             c.world.layout = match l {
