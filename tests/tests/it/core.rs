@@ -1,5 +1,5 @@
 //! The in-process simulation core end to end: determinism, learning, CLI contract.
-use geese_orchestrator::config::RunConfig;
+use geese_orchestrator::run::config::RunConfig;
 use geese_orchestrator::Trial;
 use geese_proto::StepReport;
 use geese_world::Task;
@@ -53,8 +53,10 @@ fn a_trial_steps_the_same_on_1_2_and_4_threads() {
     }
     let mut lossy = small(Task::Foraging, 9, 50, 200);
     lossy.gene_loss = 0.3;
-    lossy.perturbations =
-        vec![geese_orchestrator::config::Scheduled { at: 100, change: geese_proto::Perturbation::KillFraction(0.3) }];
+    lossy.perturbations = vec![geese_orchestrator::run::config::Scheduled {
+        at: 100,
+        change: geese_proto::Perturbation::KillFraction(0.3),
+    }];
     cases.push(lossy);
     for c in cases {
         let one = on(c.clone(), 1);

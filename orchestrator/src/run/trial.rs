@@ -21,8 +21,8 @@
 //! intents in agent-id order as before. The trajectory is therefore the same for every
 //! thread count.
 //!
-//! [`Fidelity`]: crate::config::Fidelity
-use crate::config::{task_name, Blackboard, Genes, RunSpec, Schedule};
+//! [`Fidelity`]: crate::run::config::Fidelity
+use crate::run::config::{task_name, Blackboard, Genes, RunSpec, Schedule};
 use geese_agent::program::Member;
 use geese_agent::view::KindMap;
 use geese_agent::{FitnessCell, GeneCache, Learner, SharedGene};
@@ -421,7 +421,7 @@ pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{Fidelity, RunConfig};
+    use crate::run::config::{Fidelity, RunConfig};
     use geese_agent::program::{FixedMember, Program, Strategy};
 
     /// Two fixed agents (member i for agent i) in a foraging world with one food item at
