@@ -424,7 +424,7 @@ pub fn run_config_texts() -> Vec<Vec<u8>> {
         .into_iter()
         .filter_map(|c| match c {
             Control::Schedule { at_step, change } => {
-                Some(geese_orchestrator::config::Scheduled { at: at_step + 1, change })
+                Some(geese_orchestrator::run::config::Scheduled { at: at_step + 1, change })
             }
             _ => None,
         })

@@ -9,7 +9,7 @@
 //! variant) and the message's bytes.
 use crate::corpus;
 use geese_agent::host::{Host, Input, Next as HostNext};
-use geese_orchestrator::launch::{net_spec, NetOptions};
+use geese_orchestrator::distributed::launch::{net_spec, NetOptions};
 use geese_orchestrator::RunConfig;
 use geese_proto::decode;
 use geese_proto::keys::{self, AgentRange};

@@ -14,7 +14,7 @@ use geese_agent::bt::Bt;
 use geese_agent::ge::{diversity, evaluate, parse_phenotype, GeParams, Grammar};
 use geese_agent::inbox::Inbox;
 use geese_agent::{grammars, LearnerConfig};
-use geese_orchestrator::campaign::Campaign;
+use geese_orchestrator::campaigns::campaign::Campaign;
 use geese_orchestrator::RunConfig;
 use geese_proto::keys::AgentRange;
 use geese_proto::net::{

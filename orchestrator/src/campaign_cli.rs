@@ -2,13 +2,15 @@
 //! argument parsing and printing around the library's campaign, store and report.
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use geese_orchestrator::campaign::{Campaign, CampaignError, CampaignFile, InProcess, RunOptions, TrialRunner};
-use geese_orchestrator::launch::{NetOptions, OverZenoh};
-use geese_orchestrator::merge;
-use geese_orchestrator::metrics::{EfficiencyVariant, PowerVariant};
-use geese_orchestrator::report::{self, EfficiencyChoice, ReportOptions};
-use geese_orchestrator::shard::{self, Shard};
-use geese_orchestrator::store::Store;
+use geese_orchestrator::analysis::metrics::{EfficiencyVariant, PowerVariant};
+use geese_orchestrator::analysis::report::{self, EfficiencyChoice, ReportOptions};
+use geese_orchestrator::campaigns::campaign::{
+    Campaign, CampaignError, CampaignFile, InProcess, RunOptions, TrialRunner,
+};
+use geese_orchestrator::campaigns::merge;
+use geese_orchestrator::campaigns::shard::{self, Shard};
+use geese_orchestrator::campaigns::store::Store;
+use geese_orchestrator::distributed::launch::{NetOptions, OverZenoh};
 use geese_proto::zenoh_bus::CommonArgs;
 use std::path::PathBuf;
 
@@ -174,7 +176,7 @@ pub fn campaign_cmd(a: CampaignArgs) -> Result<()> {
         db.display()
     );
     let opts = RunOptions { jobs, retry_failed: a.retry_failed, quiet: a.quiet, shard: a.shard };
-    let out = match geese_orchestrator::campaign::run_campaign(&campaign, &mut store, runner, &opts) {
+    let out = match geese_orchestrator::campaigns::campaign::run_campaign(&campaign, &mut store, runner, &opts) {
         Err(e @ CampaignError::Interrupted { .. }) => {
             eprintln!("{e}");
             std::process::exit(130)

@@ -8,11 +8,11 @@ use geese_agent::bt::{Bt, TreeFormat};
 use geese_agent::ge::{self, GeParams};
 use geese_agent::FitnessVariant;
 use geese_agent::Program;
-use geese_orchestrator::campaign::{run_stages, TrialError, TrialRunner};
-use geese_orchestrator::config::{load_grammar, read_population, FollowUp, RunConfig};
-use geese_orchestrator::output::{write_locality, write_manifest, StepCsv};
-use geese_orchestrator::trial::Ran;
-use geese_orchestrator::{bench, Trial};
+use geese_orchestrator::campaigns::campaign::{run_stages, TrialError, TrialRunner};
+use geese_orchestrator::run::config::{load_grammar, read_population, FollowUp, RunConfig};
+use geese_orchestrator::run::output::{write_locality, write_manifest, StepCsv};
+use geese_orchestrator::run::trial::Ran;
+use geese_orchestrator::{run::bench, Trial};
 use geese_proto::StepReport;
 use geese_world::{Layout, Task};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -46,9 +46,9 @@ enum Cmd {
     /// Benchmark the simulation core: learning agent-steps per second on one thread.
     Bench(BenchArgs),
     /// Benchmark the distributed runtime: lock-step rate over Zenoh, bare and learning.
-    BenchNet(geese_orchestrator::bench_net::BenchNetArgs),
+    BenchNet(geese_orchestrator::distributed::bench_net::BenchNetArgs),
     /// Run a plain Zenoh router (default tcp/127.0.0.1:7447) for --router set-ups.
-    Router(geese_orchestrator::launch::RouterArgs),
+    Router(geese_orchestrator::distributed::launch::RouterArgs),
     /// Run a campaign file (conditions × tasks × seeds) into a results database;
     /// re-running it resumes where it stopped.
     Campaign(CampaignArgs),
@@ -63,16 +63,16 @@ enum Cmd {
     /// behaviour class, PNG and SVG.
     Locality(LocalityArgs),
     /// Send a perturbation or stop to a running distributed world (control plane).
-    Control(geese_orchestrator::control::ControlArgs),
+    Control(geese_orchestrator::live::control::ControlArgs),
     /// Make the credentials and access-control list of a run whose processes are
     /// started by hand or on several hosts (`geese run --processes N` makes its own).
     Secure {
         #[command(subcommand)]
-        cmd: geese_orchestrator::secure::SecureCmd,
+        cmd: geese_orchestrator::distributed::secure::SecureCmd,
     },
     /// Watch a running distributed run in the browser (a read-only client of its bus;
     /// its controls go through the control plane).
-    View(geese_orchestrator::view::ViewArgs),
+    View(geese_orchestrator::live::view::ViewArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -164,15 +164,15 @@ struct RunArgs {
     /// Step schedule: simultaneous (DESIGN §2) or sequential (the reference code's
     /// turns in id order; in one process only).
     #[arg(long, value_enum)]
-    schedule: Option<geese_orchestrator::config::Schedule>,
+    schedule: Option<geese_orchestrator::run::config::Schedule>,
     /// Blackboard scope: per-agent (DESIGN §2) or global (the reference code's one
     /// shared map; in one process only).
     #[arg(long, value_enum)]
-    blackboard: Option<geese_orchestrator::config::Blackboard>,
+    blackboard: Option<geese_orchestrator::run::config::Blackboard>,
     /// Genes a cell-mate passes on: copied (DESIGN §2) or shared (the reference code's
     /// gene objects, one fitness field for all holders; in one process only).
     #[arg(long, value_enum)]
-    genes: Option<geese_orchestrator::config::Genes>,
+    genes: Option<geese_orchestrator::run::config::Genes>,
     /// Count the locality map (Fig. 5) over steps FROM to TO, both included (step 1 is
     /// the first step) into locality.csv; draw it with `geese locality`.
     #[arg(long, value_name = "FROM:TO")]
@@ -201,7 +201,7 @@ struct RunArgs {
     step_rate: Option<f64>,
     /// Distributed mode (issue 3): --processes N and its options.
     #[command(flatten)]
-    net: Box<geese_orchestrator::launch::NetArgs>,
+    net: Box<geese_orchestrator::distributed::launch::NetArgs>,
 }
 
 impl RunArgs {
@@ -312,7 +312,7 @@ struct LocalityArgs {
 }
 
 fn locality_cmd(a: LocalityArgs) -> Result<()> {
-    let map = geese_orchestrator::locality::load(&a.path)?;
+    let map = geese_orchestrator::analysis::locality::load(&a.path)?;
     if map.manifest.is_none() {
         eprintln!(
             "no manifest with a locality section beside {}: arena from the data, no landmarks",
@@ -573,7 +573,7 @@ fn run_cmd(a: RunArgs) -> Result<()> {
         (false, _) => None,
         (true, Some(_)) => None,
         (true, None) => {
-            let w = geese_orchestrator::watch::Watch::start(a.view_port, view_step_rate(&a))?;
+            let w = geese_orchestrator::live::watch::Watch::start(a.view_port, view_step_rate(&a))?;
             println!("view: {}", w.url());
             if a.step_rate.is_none() {
                 println!("pace: {VIEW_STEP_RATE} steps/s while viewed (change it on the page, or --step-rate N; 0 = no limit)");
@@ -600,10 +600,10 @@ fn run_cmd(a: RunArgs) -> Result<()> {
 /// lines, in this process or over Zenoh.
 struct CliRunner {
     out: PathBuf,
-    net: Option<geese_orchestrator::launch::NetOptions>,
+    net: Option<geese_orchestrator::distributed::launch::NetOptions>,
     quiet: bool,
     /// The live viewer of an in-process run (`--view`), shared by its stages.
-    watch: std::sync::Mutex<Option<geese_orchestrator::watch::Watch>>,
+    watch: std::sync::Mutex<Option<geese_orchestrator::live::watch::Watch>>,
 }
 
 impl CliRunner {
@@ -667,7 +667,7 @@ fn describe(spec: &geese_orchestrator::RunSpec, transport: &str) -> String {
 }
 
 /// After a task switch: how long the new task took to reach the threshold.
-fn print_recovery(s: &geese_orchestrator::trial::TrialSummary, threshold: f64) {
+fn print_recovery(s: &geese_orchestrator::run::trial::TrialSummary, threshold: f64) {
     if let Some(at) = s.switched_after {
         match s.steps_to_threshold_after_switch {
             Some(n) => println!("task switched after step {at}: the new task reached {threshold} % {n} steps later"),
@@ -681,7 +681,7 @@ fn in_process_run(
     spec: &geese_orchestrator::RunSpec,
     out: &std::path::Path,
     quiet: bool,
-    mut watch: Option<&mut geese_orchestrator::watch::Watch>,
+    mut watch: Option<&mut geese_orchestrator::live::watch::Watch>,
 ) -> Result<Ran> {
     let c = &spec.config;
     let csv_path = out.join("steps.csv");
@@ -738,13 +738,13 @@ fn in_process_run(
 /// `geese run --processes N`: the same stage as separate processes over Zenoh.
 fn net_run_cmd(
     spec: &geese_orchestrator::RunSpec,
-    opts: &geese_orchestrator::launch::NetOptions,
+    opts: &geese_orchestrator::distributed::launch::NetOptions,
     out: &std::path::Path,
     quiet: bool,
 ) -> Result<Ran> {
     let c = &spec.config;
     eprintln!("{}", describe(spec, &format!(" in {} agent processes over Zenoh", opts.processes)));
-    let o = geese_orchestrator::launch::run_cli(spec, opts, out, quiet)?;
+    let o = geese_orchestrator::distributed::launch::run_cli(spec, opts, out, quiet)?;
     let s = &o.summary;
     if !o.completed {
         println!("stopped at step {} of {} by a control-plane stop (geese control)", s.steps, c.steps);
@@ -893,15 +893,15 @@ fn run() -> Result<()> {
         Cmd::Run(a) => run_cmd(a),
         Cmd::Grammar { cmd } => grammar_cmd(cmd),
         Cmd::Bench(a) => bench_cmd(a),
-        Cmd::BenchNet(a) => geese_orchestrator::bench_net::bench_net_cmd(a),
-        Cmd::Router(a) => geese_orchestrator::launch::router_cmd(a),
+        Cmd::BenchNet(a) => geese_orchestrator::distributed::bench_net::bench_net_cmd(a),
+        Cmd::Router(a) => geese_orchestrator::distributed::launch::router_cmd(a),
         Cmd::Campaign(a) => campaign_cli::campaign_cmd(a),
         Cmd::Merge(a) => campaign_cli::merge_cmd(a),
         Cmd::Report(a) => campaign_cli::report_cmd(a),
         Cmd::Export(a) => campaign_cli::export_cmd(a),
         Cmd::Locality(a) => locality_cmd(a),
-        Cmd::Control(a) => geese_orchestrator::control::control_cmd(a),
-        Cmd::View(a) => geese_orchestrator::view::view_cmd(a),
-        Cmd::Secure { cmd } => geese_orchestrator::secure::secure_cmd(cmd),
+        Cmd::Control(a) => geese_orchestrator::live::control::control_cmd(a),
+        Cmd::View(a) => geese_orchestrator::live::view::view_cmd(a),
+        Cmd::Secure { cmd } => geese_orchestrator::distributed::secure::secure_cmd(cmd),
     }
 }

@@ -117,7 +117,7 @@ pub struct Server {
 
 impl Server {
     /// A server for `spec`, set up exactly as the in-process driver sets up its world
-    /// (orchestrator/src/trial.rs); joining until `now` + the join deadline.
+    /// (orchestrator/src/run/trial.rs); joining until `now` + the join deadline.
     pub fn new(spec: NetRunSpec, now: Instant) -> Result<Self, ServerError> {
         let wcfg: WorldConfig =
             serde_json::from_str(&spec.world_json).map_err(|e| ServerError::Config(e.to_string()))?;

@@ -1,12 +1,12 @@
 //! Campaigns end to end: the `geese campaign` binary killed mid-way and resumed, failed
 //! trials, perturbation knobs in the trajectory, reports, figures and CSV export.
-use geese_orchestrator::campaign::{
+use geese_orchestrator::analysis::report::{self, ReportOptions};
+use geese_orchestrator::campaigns::campaign::{
     run_campaign, Campaign, CampaignError, InProcess, Interrupted, RunOptions, TrialError, TrialRunner,
 };
-use geese_orchestrator::config::RunSpec;
-use geese_orchestrator::report::{self, ReportOptions};
-use geese_orchestrator::store::Store;
-use geese_orchestrator::trial::Ran;
+use geese_orchestrator::campaigns::store::Store;
+use geese_orchestrator::run::config::RunSpec;
+use geese_orchestrator::run::trial::Ran;
 use geese_proto::StepReport;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -554,9 +554,9 @@ terms = "D+E+B"
 
 #[test]
 fn text_conditions_are_ordered_as_written_with_readable_labels() {
-    use geese_orchestrator::metrics;
-    use geese_orchestrator::store::TrialResult;
-    use geese_orchestrator::trial::TrialSummary;
+    use geese_orchestrator::analysis::metrics;
+    use geese_orchestrator::campaigns::store::TrialResult;
+    use geese_orchestrator::run::trial::TrialSummary;
     let c = Campaign::from_toml(TEXT_CONDITIONS, "fig3-like").expect("campaign");
     let dir = tempfile::tempdir().expect("tempdir");
     let mut store = Store::create(&dir.path().join("t.sqlite")).expect("db");

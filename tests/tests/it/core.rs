@@ -1,5 +1,5 @@
 //! The in-process simulation core end to end: determinism, learning, CLI contract.
-use geese_orchestrator::config::RunConfig;
+use geese_orchestrator::run::config::RunConfig;
 use geese_orchestrator::Trial;
 use geese_proto::StepReport;
 use geese_world::Task;
@@ -53,8 +53,10 @@ fn a_trial_steps_the_same_on_1_2_and_4_threads() {
     }
     let mut lossy = small(Task::Foraging, 9, 50, 200);
     lossy.gene_loss = 0.3;
-    lossy.perturbations =
-        vec![geese_orchestrator::config::Scheduled { at: 100, change: geese_proto::Perturbation::KillFraction(0.3) }];
+    lossy.perturbations = vec![geese_orchestrator::run::config::Scheduled {
+        at: 100,
+        change: geese_proto::Perturbation::KillFraction(0.3),
+    }];
     cases.push(lossy);
     for c in cases {
         let one = on(c.clone(), 1);
@@ -73,7 +75,7 @@ fn a_trial_steps_the_same_on_1_2_and_4_threads() {
 /// it drops to 0 right after it, and items of the new task get delivered.
 #[test]
 fn a_trial_with_task_switches_steps_the_same_on_1_2_and_4_threads() {
-    use geese_orchestrator::config::Scheduled;
+    use geese_orchestrator::run::config::Scheduled;
     use geese_proto::Perturbation::SwitchTask;
     let mut c = small(Task::Foraging, 5, 100, 900);
     c.perturbations = vec![
@@ -102,7 +104,7 @@ fn a_trial_with_task_switches_steps_the_same_on_1_2_and_4_threads() {
 /// objects is accepted, with a note.
 #[test]
 fn bad_switches_and_mutation_rules_are_refused_by_name() {
-    use geese_orchestrator::config::Scheduled;
+    use geese_orchestrator::run::config::Scheduled;
     use geese_proto::Perturbation::SwitchTask;
     let refused = |c: RunConfig| c.validate().map(|_| ()).unwrap_err().to_string();
     let with = |at: u64, to: Task| {

@@ -4,8 +4,8 @@
 //!
 //! Every process a test starts is ended by PID (the launcher kills its children by PID;
 //! the tests check afterwards that none is left). Every wait is bounded.
-use geese_orchestrator::config::{RunConfig, Scheduled};
-use geese_orchestrator::launch::{run_net, NetOptions};
+use geese_orchestrator::distributed::launch::{run_net, NetOptions};
+use geese_orchestrator::run::config::{RunConfig, Scheduled};
 use geese_orchestrator::Trial;
 use geese_proto::net::{nest, Deadlines, LossRates, NetReport, Raw};
 use geese_proto::{Perturbation, StepReport};
@@ -361,7 +361,7 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
     opts.subscribe = Some("all,cells".into());
     // What the receivers do with whatever gets through (DESIGN.md §7), so no logins: a
     // secured run's router would refuse this attacker (tests/it/security.rs).
-    opts.security = geese_orchestrator::launch::Security::Off;
+    opts.security = geese_orchestrator::distributed::launch::Security::Off;
     let (tx, rx) = std::sync::mpsc::channel::<(String, geese_proto::zenoh_bus::CommonArgs, (i32, i32))>();
     let mut sent = false;
     let mut reps: Vec<NetReport> = Vec::new();
@@ -752,9 +752,9 @@ fn geese_control_perturbs_and_stops_a_running_world() {
 fn campaign_over_zenoh_equals_the_campaign_in_process() {
     let _one_at_a_time = serial();
     use super::campaign::{quiet, Recorder};
-    use geese_orchestrator::campaign::{run_campaign, Campaign, InProcess};
-    use geese_orchestrator::launch::OverZenoh;
-    use geese_orchestrator::store::Store;
+    use geese_orchestrator::campaigns::campaign::{run_campaign, Campaign, InProcess};
+    use geese_orchestrator::campaigns::store::Store;
+    use geese_orchestrator::distributed::launch::OverZenoh;
     // Two perturbed conditions, run-time knobs included (kill, lateral transfer off and
     // on, obstacles): each trial launches its own world and three agent processes.
     let text = r#"
@@ -835,8 +835,8 @@ fn fifty_trials_back_to_back_in_one_process_never_wait_on_a_deadline() {
 #[test]
 fn every_algorithm_and_fixed_populations_equal_their_in_process_runs_over_zenoh() {
     use geese_agent::{Algorithm, Population};
-    use geese_orchestrator::campaign::{run_stages, InProcess, TrialRunner};
-    use geese_orchestrator::launch::OverZenoh;
+    use geese_orchestrator::campaigns::campaign::{run_stages, InProcess, TrialRunner};
+    use geese_orchestrator::distributed::launch::OverZenoh;
     let _one_at_a_time = serial();
     let five =
         |task: &str| Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../populations/{task}-five-behaviours.json"));

@@ -3,8 +3,8 @@
 //! they say they change — and nothing before it.
 use geese_agent::learner::Fusion;
 use geese_agent::program::{is_complete, Algorithm, Phase, Population};
-use geese_orchestrator::campaign::Campaign;
-use geese_orchestrator::config::RunConfig;
+use geese_orchestrator::campaigns::campaign::Campaign;
+use geese_orchestrator::run::config::RunConfig;
 use geese_orchestrator::Trial;
 use geese_proto::StepReport;
 use std::path::PathBuf;

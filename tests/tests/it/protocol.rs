@@ -7,8 +7,8 @@
 //! fails the test rather than sleeping.
 use super::distributed::{config, gs2, in_process, perturbed};
 use geese_agent::host::{Host, Input, Next as HostNext, Out};
-use geese_orchestrator::config::RunConfig;
-use geese_orchestrator::launch::{net_spec, NetOptions};
+use geese_orchestrator::distributed::launch::{net_spec, NetOptions};
+use geese_orchestrator::run::config::RunConfig;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{Deadlines, IntentBatch, LossRates, NetReport, ReportMsg};
 use geese_proto::{decode, encode, StepReport};

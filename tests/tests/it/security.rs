@@ -8,7 +8,7 @@
 //! the forged messages it never sees were dropped at the router. (A receiver's own
 //! publications also reach its own subscribers, so the reader is a session of its own.)
 use super::distributed::{assert_all_gone, config, in_process, options, serial, step_reports};
-use geese_orchestrator::launch::{run_net, Security};
+use geese_orchestrator::distributed::launch::{run_net, Security};
 use geese_proto::keys::{self, AgentRange};
 use geese_proto::net::NetReport;
 use geese_proto::security::{self, Credential};

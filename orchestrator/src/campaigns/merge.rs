@@ -1,9 +1,9 @@
-//! `geese merge`: the databases of a campaign's shards ([`crate::shard`]) combined into
+//! `geese merge`: the databases of a campaign's shards ([`crate::campaigns::shard`]) combined into
 //! one results database, which `geese report` and `geese export` read as if the campaign
 //! had run unsharded.
 //!
 //! Every input is checked before anything is written: it must be a campaign database of
-//! this schema version whose resolved campaign ([`crate::campaign::Campaign::resolved_digest`])
+//! this schema version whose resolved campaign ([`crate::campaigns::campaign::Campaign::resolved_digest`])
 //! is the output's (when the output already holds one) or the first input's. The inputs
 //! are then copied in a single transaction on the output, so a refused or failed merge
 //! leaves the output as it was. Inputs are read with their own read-only connections
@@ -19,7 +19,9 @@
 //! output that already holds some of the trials therefore all merge to the same result.
 //! Sessions (the `geese campaign` invocations that ran the trials) are copied too, once
 //! each, so the merged campaign's wall time is the sum over its shards' invocations.
-use crate::store::{Store, StoreError, META_RESOLVED_DIGEST, META_SHARD, META_TRIALS_PLANNED, SCHEMA_VERSION};
+use crate::campaigns::store::{
+    Store, StoreError, META_RESOLVED_DIGEST, META_SHARD, META_TRIALS_PLANNED, SCHEMA_VERSION,
+};
 use rusqlite::types::Value;
 use rusqlite::{params, params_from_iter, Connection, OpenFlags, OptionalExtension, Transaction, TransactionBehavior};
 use std::collections::{BTreeSet, HashMap};
@@ -625,10 +627,10 @@ impl<'a> Merger<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::campaign::{Campaign, CampaignOutcome};
-    use crate::shard::{self, Shard};
-    use crate::store::TrialResult;
-    use crate::trial::TrialSummary;
+    use crate::campaigns::campaign::{Campaign, CampaignOutcome};
+    use crate::campaigns::shard::{self, Shard};
+    use crate::campaigns::store::TrialResult;
+    use crate::run::trial::TrialSummary;
     use geese_proto::StepReport;
 
     /// 2 conditions × 1 task × 3 seeds = 6 trials (never run: results are made up).
@@ -656,7 +658,7 @@ mod tests {
                 .collect();
             let error = (t.seed == failed).then(|| "made-up failure".to_string());
             let result = TrialResult {
-                outcome: crate::metrics::outcome(&series, 80.0),
+                outcome: crate::analysis::metrics::outcome(&series, 80.0),
                 summary: error.is_none().then(|| TrialSummary::new(t.seed)),
                 rows: if error.is_none() { rows } else { Vec::new() },
                 error,

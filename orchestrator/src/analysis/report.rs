@@ -6,9 +6,9 @@
 //!
 //! Levels are ordered as the campaign's conditions first name them: numeric levels by
 //! value, text levels (`algorithm`, `terms`, conditions) in order of first appearance.
-use crate::metrics::{self, EfficiencyVariant, Outcome, PowerVariant, Stats};
-use crate::plot::{self, BoxAxis, BoxGroup, Curve, PlotError, ScatterPanel};
-use crate::store::{csv_field, Store, StoreError, StoredTrial};
+use crate::analysis::metrics::{self, EfficiencyVariant, Outcome, PowerVariant, Stats};
+use crate::analysis::plot::{self, BoxAxis, BoxGroup, Curve, PlotError, ScatterPanel};
+use crate::campaigns::store::{csv_field, Store, StoreError, StoredTrial};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -1,8 +1,8 @@
 //! `geese locality`: a run's locality map (`locality.csv`, and the manifest beside it
 //! for the arena, the window and the landmarks) drawn as the paper's Fig. 5 — one
 //! panel per behaviour class 1–5, the same axes on each.
-use crate::output::{LocalityManifest, LOCALITY_CSV};
-use crate::plot::{self, LocalityBox, LocalityPanel, PlotError};
+use crate::analysis::plot::{self, LocalityBox, LocalityPanel, PlotError};
+use crate::run::output::{LocalityManifest, LOCALITY_CSV};
 use geese_proto::BehaviourClass;
 use geese_world::locality::{parse_csv, Count, LocalityError};
 use std::path::{Path, PathBuf};

@@ -8,8 +8,8 @@
 //! ratio learning/bare, and the resident memory per agent process; with `--repeat N` it
 //! runs each learning scenario N times and adds the minimum, median and maximum rate. It
 //! prints figures; it asserts nothing.
-use crate::config::RunConfig;
-use crate::launch::{run_net, NetOptions, NetOutcome, Security};
+use crate::distributed::launch::{run_net, NetOptions, NetOutcome, Security};
+use crate::run::config::RunConfig;
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 

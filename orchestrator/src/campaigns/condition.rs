@@ -10,7 +10,7 @@
 //!
 //! Knob values are checked here, by knob name, so that a bad campaign file is reported
 //! as `grid[1].ip: 1.5 is outside [0, 1]` rather than as a failed trial.
-use crate::config::{RunConfig, Scheduled};
+use crate::run::config::{RunConfig, Scheduled};
 use geese_proto::Perturbation;
 use geese_world::{Layout, Task};
 use serde::{Deserialize, Serialize};
@@ -503,7 +503,7 @@ mod tests {
     /// names the knob and the values it takes.
     #[test]
     fn fidelity_knobs_set_the_schedule_blackboard_and_genes() {
-        use crate::config::{Blackboard, Genes, Schedule};
+        use crate::run::config::{Blackboard, Genes, Schedule};
         let text = |s: &str| Level::Text(s.into());
         let c = cond(&[
             (Knob::Schedule, text("sequential")),

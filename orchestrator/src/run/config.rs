@@ -74,7 +74,7 @@ pub struct RunConfig {
     /// being the first ([`geese_world::locality`]); written to `locality.csv`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub locality: Option<String>,
-    /// Threads that step one in-process trial ([`crate::trial`]); the trajectory is the
+    /// Threads that step one in-process trial ([`crate::run::trial`]); the trajectory is the
     /// same for every value. Unset: one (a campaign runs one trial per core); `geese run`
     /// chooses ([`RunConfig::auto_threads`]).
     #[serde(skip_serializing_if = "Option::is_none")]

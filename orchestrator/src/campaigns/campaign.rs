@@ -9,13 +9,13 @@
 //!
 //! Running a trial goes through the [`TrialRunner`] trait: [`InProcess`] runs it on the
 //! in-memory transport; a distributed runner (one trial over Zenoh) plugs in there.
-use crate::condition::{Condition, Coupling, Knob, Level, DEFAULT_STOP_INTERVAL};
-use crate::config::{RunConfig, RunSpec};
-use crate::metrics::{self, EfficiencyVariant};
-use crate::output::text_digest;
-use crate::shard::{self, Shard};
-use crate::store::{Store, StoreError, TrialRecord, TrialResult};
-use crate::trial::{run_trial, Ran};
+use crate::analysis::metrics::{self, EfficiencyVariant};
+use crate::campaigns::condition::{Condition, Coupling, Knob, Level, DEFAULT_STOP_INTERVAL};
+use crate::campaigns::shard::{self, Shard};
+use crate::campaigns::store::{Store, StoreError, TrialRecord, TrialResult};
+use crate::run::config::{RunConfig, RunSpec};
+use crate::run::output::text_digest;
+use crate::run::trial::{run_trial, Ran};
 use geese_proto::seed::Fnv64;
 use geese_proto::StepReport;
 use geese_world::Task;
@@ -474,7 +474,7 @@ pub trait TrialRunner: Sync {
     fn run(&self, spec: &RunSpec, observe: &mut dyn FnMut(&StepReport)) -> Result<Ran, TrialError>;
 }
 
-/// Run `spec` and the stages that follow it ([`crate::config::FollowUp`]: a Multi-GEESE
+/// Run `spec` and the stages that follow it ([`crate::run::config::FollowUp`]: a Multi-GEESE
 /// combine phase after its collect phase, the fixed test of a learned population);
 /// `observe` sees the last stage's steps, `stage_done` every stage with the population
 /// it ended with, and `learned` the task % per step, `(step, task %)`, of the learning
@@ -490,7 +490,7 @@ pub fn run_stages(
 ) -> Result<Ran, TrialError> {
     let mut cur = spec.clone();
     loop {
-        if cur.follow_up == crate::config::FollowUp::None {
+        if cur.follow_up == crate::run::config::FollowUp::None {
             let ran = runner.run(&cur, observe)?;
             let pop = cur.population(ran.members.clone());
             stage_done(&cur, &ran, &pop);
@@ -501,7 +501,7 @@ pub fn run_stages(
         let stage = match cached {
             Some(stage) => stage,
             None => {
-                let tested = cur.follow_up == crate::config::FollowUp::FixedTest;
+                let tested = cur.follow_up == crate::run::config::FollowUp::FixedTest;
                 let mut curve = Vec::new();
                 let ran = runner.run(&cur, &mut |r| {
                     if tested {
@@ -517,7 +517,7 @@ pub fn run_stages(
                 stage
             }
         };
-        if cur.follow_up == crate::config::FollowUp::FixedTest {
+        if cur.follow_up == crate::run::config::FollowUp::FixedTest {
             learned(&stage.curve);
         }
         match cur.next_stage(&stage.pop)? {
@@ -548,7 +548,7 @@ pub struct StageCache {
 
 impl StageCache {
     /// The key of a stage: trials with the same key share the stage (and the shards of
-    /// a campaign keep them together, [`crate::shard`]).
+    /// a campaign keep them together, [`crate::campaigns::shard`]).
     pub(crate) fn key(spec: &RunSpec) -> String {
         let mut c = spec.config.clone();
         // Settings read only by the fixed test that follows.
@@ -588,7 +588,7 @@ pub struct RunOptions {
     pub retry_failed: bool,
     /// No progress bar.
     pub quiet: bool,
-    /// Run only this shard's trials ([`crate::shard`]); the store records the shard.
+    /// Run only this shard's trials ([`crate::campaigns::shard`]); the store records the shard.
     pub shard: Option<Shard>,
 }
 

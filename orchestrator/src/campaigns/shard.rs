@@ -12,15 +12,15 @@
 //! steps, a Multi-GEESE collect-then-combine run two, both and a test three). Trials
 //! that test the same learned population (Fig. 8b's sampling sizes: one learning run per
 //! algorithm, task and seed, tested at several sizes) share their learning stages in one
-//! process ([`crate::campaign::StageCache`]), so they are kept in one shard as one unit:
+//! process ([`crate::campaigns::campaign::StageCache`]), so they are kept in one shard as one unit:
 //! split over several shards, each would learn the population again.
 //!
 //! Units are assigned greedily, longest processing time first: sorted by (cost
 //! descending, trial key), each goes to the shard with the least cost so far (the lowest
 //! index on ties). Whatever the order, this keeps the most loaded shard within one unit's
 //! cost of the least loaded one.
-use crate::campaign::{Campaign, PlannedTrial, StageCache};
-use crate::config::{FollowUp, RunSpec};
+use crate::campaigns::campaign::{Campaign, PlannedTrial, StageCache};
+use crate::run::config::{FollowUp, RunSpec};
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BinaryHeap};
 use std::fmt;

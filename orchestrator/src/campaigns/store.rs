@@ -13,11 +13,11 @@
 //! NULL there), [`Store::open`] adds them too when the file is writable and otherwise
 //! reads the database as it is. Version 1 lacks `sessions.shard` (the shard an
 //! invocation ran, `geese campaign --shard`), added the same way.
-use crate::campaign::{Campaign, CampaignOutcome};
-use crate::metrics::Outcome;
-use crate::output::versions;
-use crate::shard::Shard;
-use crate::trial::TrialSummary;
+use crate::analysis::metrics::Outcome;
+use crate::campaigns::campaign::{Campaign, CampaignOutcome};
+use crate::campaigns::shard::Shard;
+use crate::run::output::versions;
+use crate::run::trial::TrialSummary;
 use geese_proto::StepReport;
 use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
 use std::io::Write;
@@ -215,7 +215,7 @@ impl StoredTrial {
 }
 
 pub struct Store {
-    /// Crate-visible for [`crate::merge`], which writes a whole merge in one transaction.
+    /// Crate-visible for [`crate::campaigns::merge`], which writes a whole merge in one transaction.
     pub(crate) conn: Connection,
     path: PathBuf,
     /// The trials table has `stage_wall_seconds` (false: a read-only version-0 file).
@@ -840,7 +840,7 @@ mod tests {
         let mut n = 0;
         s.for_each_learning_pct(|_, _, _| n += 1).unwrap();
         assert_eq!(n, 0);
-        let r = crate::report::build(&s, &Default::default()).unwrap();
+        let r = crate::analysis::report::build(&s, &Default::default()).unwrap();
         assert!(r.points[0].ms_per_step.is_none() && r.conditions[0].ms_per_step.is_none());
         let files = s.export_csv(&dir.join("csv")).unwrap();
         assert!(files.iter().any(|f| f.ends_with("learning_steps.csv")));

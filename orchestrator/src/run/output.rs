@@ -3,8 +3,8 @@
 //! The manifest records everything needed to reproduce the run: the resolved config,
 //! the seed and how streams derive from it, the grammar and its digest, versions and the
 //! git revision.
-use crate::config::RunSpec;
-use crate::trial::TrialSummary;
+use crate::run::config::RunSpec;
+use crate::run::trial::TrialSummary;
 use geese_proto::seed::Fnv64;
 use geese_proto::{ObjectKind, StepReport};
 use serde::{Deserialize, Serialize};
@@ -60,7 +60,7 @@ struct Manifest<'a> {
     /// How a distributed run was secured (logins and access control, or none).
     #[serde(skip_serializing_if = "Option::is_none")]
     security: Option<&'a str>,
-    config: &'a crate::config::RunConfig,
+    config: &'a crate::run::config::RunConfig,
     /// Perturbations received on the control plane during the run (`geese control`).
     #[serde(skip_serializing_if = "<[_]>::is_empty")]
     control: &'a [geese_proto::Control],

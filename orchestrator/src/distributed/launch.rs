@@ -7,9 +7,9 @@
 //! departure makes every agent process exit) before killing whatever is left. If the
 //! launcher itself dies, the world notices the orchestrator's liveliness token vanish
 //! and stops, and the agents follow the world: no orphans either way.
-use crate::config::RunSpec;
-use crate::output::{write_locality, write_manifest, StepCsv};
-use crate::trial::TrialSummary;
+use crate::run::config::RunSpec;
+use crate::run::output::{write_locality, write_manifest, StepCsv};
+use crate::run::trial::TrialSummary;
 use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{Deadlines, LossRates, NetReport, NetRunSpec, ReportMsg};
 use geese_proto::security::{self, Layout, Secrets};
@@ -386,7 +386,7 @@ pub struct OverZenoh {
     pub opts: NetOptions,
 }
 
-impl crate::campaign::TrialRunner for OverZenoh {
+impl crate::campaigns::campaign::TrialRunner for OverZenoh {
     fn transport(&self) -> &str {
         "zenoh"
     }
@@ -395,14 +395,14 @@ impl crate::campaign::TrialRunner for OverZenoh {
         &self,
         spec: &RunSpec,
         observe: &mut dyn FnMut(&geese_proto::StepReport),
-    ) -> Result<crate::trial::Ran, crate::campaign::TrialError> {
+    ) -> Result<crate::run::trial::Ran, crate::campaigns::campaign::TrialError> {
         let opts = NetOptions { run: None, ..self.opts.clone() };
         match run_net(spec, &opts, |r, _| observe(&r.report)) {
-            Ok(out) if out.completed => Ok(crate::trial::Ran { summary: out.summary, members: out.members }),
+            Ok(out) if out.completed => Ok(crate::run::trial::Ran { summary: out.summary, members: out.members }),
             Ok(out) => Err(format!("the world stopped after {} of {} steps", out.reports, spec.config.steps).into()),
             // Ctrl-C ends the campaign; it is no failure of the trial (the children are
             // gone by now).
-            Err(LaunchError::Interrupted) => Err(Box::new(crate::campaign::Interrupted)),
+            Err(LaunchError::Interrupted) => Err(Box::new(crate::campaigns::campaign::Interrupted)),
             Err(e) => Err(e.into()),
         }
     }
@@ -749,7 +749,7 @@ async fn run_net_async(
         .map_err(zerr)?;
     let view = match opts.view {
         Some(port) => {
-            let v = crate::view::ZenohView::attach(&session, &run, port, true)
+            let v = crate::live::view::ZenohView::attach(&session, &run, port, true)
                 .await
                 .map_err(|e| LaunchError::Invalid(format!("viewer: {e}")))?;
             println!("view: {}", v.url());
@@ -1101,7 +1101,7 @@ impl NetArgs {
 
 impl NetArgs {
     /// Apply the flags that change the run configuration itself.
-    pub fn apply(&self, mut c: crate::config::RunConfig) -> crate::config::RunConfig {
+    pub fn apply(&self, mut c: crate::run::config::RunConfig) -> crate::run::config::RunConfig {
         if let Some(p) = self.gene_loss {
             c.gene_loss = p;
         }

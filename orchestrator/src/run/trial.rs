@@ -21,8 +21,8 @@
 //! intents in agent-id order as before. The trajectory is therefore the same for every
 //! thread count.
 //!
-//! [`Fidelity`]: crate::config::Fidelity
-use crate::config::{Blackboard, Genes, RunSpec, Schedule};
+//! [`Fidelity`]: crate::run::config::Fidelity
+use crate::run::config::{Blackboard, Genes, RunSpec, Schedule};
 use geese_agent::program::Member;
 use geese_agent::view::KindMap;
 use geese_agent::{FitnessCell, GeneCache, Learner, SharedGene};
@@ -77,7 +77,7 @@ impl TrialSummary {
 
     /// A summary that also measures the recovery from the first task switch of
     /// `perturbations` (the metric of issue 30.4), on every transport alike.
-    pub fn for_run(seed: u64, perturbations: &[crate::config::Scheduled]) -> Self {
+    pub fn for_run(seed: u64, perturbations: &[crate::run::config::Scheduled]) -> Self {
         let switched_after = perturbations
             .iter()
             .filter(|p| matches!(p.change, geese_proto::Perturbation::SwitchTask(_)))
@@ -445,7 +445,7 @@ pub fn run_trial(spec: &RunSpec, mut observe: impl FnMut(&StepReport)) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{Fidelity, RunConfig};
+    use crate::run::config::{Fidelity, RunConfig};
     use geese_agent::program::{FixedMember, Program, Strategy};
 
     /// Two fixed agents (member i for agent i) in a foraging world with one food item at

@@ -591,9 +591,9 @@ fn draw_boxes<DB: DrawingBackend>(
             let mut v = vals.clone();
             v.sort_by(|a, b| a.total_cmp(b));
             let (Some(q1), Some(med), Some(q3)) = (
-                crate::metrics::quantile(&v, 0.25),
-                crate::metrics::quantile(&v, 0.5),
-                crate::metrics::quantile(&v, 0.75),
+                crate::analysis::metrics::quantile(&v, 0.25),
+                crate::analysis::metrics::quantile(&v, 0.5),
+                crate::analysis::metrics::quantile(&v, 0.75),
             ) else {
                 continue;
             };

@@ -2,8 +2,8 @@
 //! thread or several (`--threads`), in any arena (`--width`); and (`geese bench
 //! --micro`) micro-benchmarks of one genetic step and one
 //! mapping. A benchmark prints figures; it is not a test and asserts nothing.
-use crate::config::RunConfig;
-use crate::trial::Trial;
+use crate::run::config::RunConfig;
+use crate::run::trial::Trial;
 use std::time::Instant;
 
 /// Result of one benchmark run.
@@ -40,7 +40,7 @@ pub fn bench_core(cfg: RunConfig) -> anyhow::Result<BenchResult> {
 
 /// This process's peak resident memory (VmHWM) in MiB, where Linux tells it.
 pub fn peak_rss_mib() -> Option<f64> {
-    crate::launch::proc_number("/proc/self/status", "VmHWM:").map(|kib| kib as f64 / 1024.0)
+    crate::distributed::launch::proc_number("/proc/self/status", "VmHWM:").map(|kib| kib as f64 / 1024.0)
 }
 
 /// Batches of the genetic-step micro-benchmark (the best one is reported).

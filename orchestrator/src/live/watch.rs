@@ -4,8 +4,8 @@
 //!
 //! The run's loop stays synchronous: the web server runs on a Tokio runtime of its own
 //! and talks to the loop through a channel; the loop never waits on the server.
-use crate::trial::Trial;
-use crate::view::{self, Backend, Command, Feed};
+use crate::live::view::{self, Backend, Command, Feed};
+use crate::run::trial::Trial;
 use geese_proto::{Control, StepReport};
 use geese_world::pace::Pace;
 use std::net::SocketAddr;
