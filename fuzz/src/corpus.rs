@@ -446,3 +446,137 @@ pub fn run_config_texts() -> Vec<Vec<u8>> {
     }
     out
 }
+
+/// A token as a line of an AFL dictionary: `"…"` with `"`, `\` and every byte outside
+/// printable ASCII written `\xNN`.
+pub fn dictionary_line(token: &[u8]) -> String {
+    let mut s = String::from("\"");
+    for &b in token {
+        if (0x20..0x7f).contains(&b) && b != b'"' && b != b'\\' {
+            s.push(b as char);
+        } else {
+            s.push_str(&format!("\\x{b:02x}"));
+        }
+    }
+    s.push('"');
+    s
+}
+
+/// What [`export`] wrote for one target.
+#[derive(Clone, Debug)]
+pub struct Exported {
+    pub target: &'static str,
+    pub seeds: usize,
+    /// Tokens in `<dir>/<target>.dict` (0: no dictionary file).
+    pub tokens: usize,
+}
+
+/// Write the seeds of every target as files, `<dir>/<target>/seed-NNN.bin`, and the
+/// dictionary of each text target as `<dir>/<target>.dict` (AFL's format): the input
+/// directory and `-x` file of an engine run. Seeds are made in code from the crates'
+/// own encoders, so they follow every change of a message without a file to update.
+pub fn export(dir: &Path) -> std::io::Result<Vec<Exported>> {
+    let mut out = Vec::new();
+    for t in crate::TARGETS {
+        let mut m = (t.material)();
+        if m.dictionary.is_empty() {
+            m.dictionary = binary_tokens();
+        }
+        let d = dir.join(t.name);
+        std::fs::create_dir_all(&d)?;
+        for (i, s) in m.seeds.iter().enumerate() {
+            std::fs::write(d.join(format!("seed-{i:03}.bin")), s)?;
+        }
+        // AFL skips tokens longer than 128 bytes.
+        let tokens: Vec<String> =
+            m.dictionary.iter().filter(|t| !t.is_empty() && t.len() <= 128).map(|t| dictionary_line(t)).collect();
+        if !tokens.is_empty() {
+            std::fs::write(dir.join(format!("{}.dict", t.name)), tokens.join("\n") + "\n")?;
+        }
+        out.push(Exported { target: t.name, seeds: m.seeds.len(), tokens: tokens.len() });
+    }
+    Ok(out)
+}
+
+/// Unsigned values on the boundaries of varint lengths, integer widths and "sane"
+/// lengths and counts.
+const INTERESTING: &[u64] = &[
+    0,
+    1,
+    2,
+    3,
+    4,
+    7,
+    8,
+    16,
+    31,
+    32,
+    64,
+    100,
+    127,
+    128,
+    255,
+    256,
+    1000,
+    4095,
+    4096,
+    16_383,
+    16_384,
+    32_767,
+    32_768,
+    65_535,
+    65_536,
+    1 << 20,
+    1 << 24,
+    (1 << 31) - 1,
+    1 << 31,
+    u32::MAX as u64,
+    1 << 32,
+    1 << 53,
+    i64::MAX as u64,
+    1 << 63,
+    u64::MAX,
+];
+
+/// Postcard's varint (LEB128) of `v`.
+pub fn varint(mut v: u64) -> Vec<u8> {
+    let mut out = Vec::with_capacity(10);
+    loop {
+        let b = (v & 0x7f) as u8;
+        v >>= 7;
+        if v == 0 {
+            out.push(b);
+            return out;
+        }
+        out.push(b | 0x80);
+    }
+}
+
+/// The dictionary of the postcard targets: interesting integers in the encodings a
+/// decoder reads them in (varint, zigzag varint for negatives, over-long varints,
+/// 4- and 8-byte little-endian), IEEE specials, and the wire version byte. An engine
+/// does not know postcard's varints, so a length or count on a boundary would otherwise
+/// take it many tries.
+pub fn binary_tokens() -> Vec<Vec<u8>> {
+    let mut out = vec![vec![geese_proto::WIRE_VERSION]];
+    for &v in INTERESTING {
+        out.push(varint(v));
+        out.push(varint(v.wrapping_mul(2) ^ 1));
+        if v > 255 {
+            out.push(varint(v - 1));
+            out.push((v as u32).to_le_bytes().to_vec());
+            out.push(v.to_le_bytes().to_vec());
+        }
+    }
+    for n in [5, 10, 12] {
+        let mut b = vec![0x80u8; n];
+        b.push(0x01);
+        out.push(b);
+    }
+    for f in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, f64::MAX, f64::MIN_POSITIVE, 1e-310, -1.0] {
+        out.push(f.to_le_bytes().to_vec());
+    }
+    out.sort();
+    out.dedup();
+    out
+}

@@ -49,6 +49,9 @@ struct Args {
     /// Replay every kept input under this directory (`<dir>/<target>/*`) and exit.
     #[arg(long)]
     regressions: Option<PathBuf>,
+    /// Write every target's seed inputs (and dictionary) under this directory and exit.
+    #[arg(long)]
+    export_seeds: Option<PathBuf>,
 }
 
 fn default_crash_dir() -> PathBuf {
@@ -75,6 +78,12 @@ fn main() -> Result<()> {
     if args.list {
         for t in TARGETS {
             println!("{:<14} {}", t.name, t.about);
+        }
+        return Ok(());
+    }
+    if let Some(dir) = &args.export_seeds {
+        for e in geese_fuzz::corpus::export(dir).with_context(|| format!("writing {}", dir.display()))? {
+            println!("{:<14} {:>4} seeds {:>5} tokens", e.target, e.seeds, e.tokens);
         }
         return Ok(());
     }
