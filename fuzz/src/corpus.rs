@@ -19,7 +19,73 @@ use geese_proto::{
 };
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
+
+/// The seed inputs of one target and the dictionary an engine inserts tokens of.
+#[derive(Clone, Debug, Default)]
+pub struct Seeds {
+    pub inputs: Vec<Vec<u8>>,
+    /// Tokens of the format: keywords and punctuation of a text format, the varints and
+    /// integer edges of postcard ([`binary_tokens`]) for a binary one.
+    pub dictionary: Vec<Vec<u8>>,
+}
+
+impl Seeds {
+    /// Inputs of a text format, with a dictionary of its `punctuation`, numbers at the
+    /// edges of the types values parse into, and every word (letters, digits, `_`, `-`,
+    /// `.`) found in the inputs: keys, rule and node names, values.
+    pub fn text(inputs: Vec<Vec<u8>>, punctuation: &[&str]) -> Seeds {
+        let mut dictionary: Vec<Vec<u8>> = punctuation.iter().map(|p| p.as_bytes().to_vec()).collect();
+        dictionary.extend(TEXT_NUMBERS.iter().map(|p| p.as_bytes().to_vec()));
+        let mut words = BTreeSet::new();
+        for s in &inputs {
+            let word = |c: &u8| c.is_ascii_alphanumeric() || matches!(c, b'_' | b'-' | b'.');
+            for w in s.split(|c| !word(c)).filter(|w| (2..=40).contains(&w.len())) {
+                words.insert(w.to_vec());
+            }
+        }
+        dictionary.extend(words.into_iter().take(2_000));
+        Seeds { inputs, dictionary }
+    }
+
+    /// Inputs of a postcard format, with [`binary_tokens`] as the dictionary.
+    pub fn binary(inputs: Vec<Vec<u8>>) -> Seeds {
+        Seeds { inputs, dictionary: binary_tokens() }
+    }
+}
+
+/// Numbers, as text, at the edges of the types configuration values parse into.
+const TEXT_NUMBERS: &[&str] = &[
+    "0",
+    "-0",
+    "1",
+    "-1",
+    "0.5",
+    "-0.0",
+    "1e308",
+    "1e309",
+    "-1e309",
+    "nan",
+    "inf",
+    "-inf",
+    "127",
+    "128",
+    "255",
+    "256",
+    "65535",
+    "65536",
+    "2147483647",
+    "2147483648",
+    "-2147483649",
+    "4294967295",
+    "4294967296",
+    "9223372036854775807",
+    "9223372036854775808",
+    "18446744073709551615",
+    "18446744073709551616",
+    "99999999999999999999999999",
+];
 
 /// The geometry of the default run (100 × 100, grid 10).
 pub fn geometry() -> Geometry {
@@ -467,7 +533,7 @@ pub fn dictionary_line(token: &[u8]) -> String {
 pub struct Exported {
     pub target: &'static str,
     pub seeds: usize,
-    /// Tokens in `<dir>/<target>.dict` (0: no dictionary file).
+    /// Tokens in `<dir>/<target>.dict`.
     pub tokens: usize,
 }
 
@@ -478,13 +544,10 @@ pub struct Exported {
 pub fn export(dir: &Path) -> std::io::Result<Vec<Exported>> {
     let mut out = Vec::new();
     for t in crate::TARGETS {
-        let mut m = (t.material)();
-        if m.dictionary.is_empty() {
-            m.dictionary = binary_tokens();
-        }
+        let m = (t.seeds)();
         let d = dir.join(t.name);
         std::fs::create_dir_all(&d)?;
-        for (i, s) in m.seeds.iter().enumerate() {
+        for (i, s) in m.inputs.iter().enumerate() {
             std::fs::write(d.join(format!("seed-{i:03}.bin")), s)?;
         }
         // AFL skips tokens longer than 128 bytes.
@@ -493,7 +556,7 @@ pub fn export(dir: &Path) -> std::io::Result<Vec<Exported>> {
         if !tokens.is_empty() {
             std::fs::write(dir.join(format!("{}.dict", t.name)), tokens.join("\n") + "\n")?;
         }
-        out.push(Exported { target: t.name, seeds: m.seeds.len(), tokens: tokens.len() });
+        out.push(Exported { target: t.name, seeds: m.inputs.len(), tokens: tokens.len() });
     }
     Ok(out)
 }
@@ -579,4 +642,52 @@ pub fn binary_tokens() -> Vec<Vec<u8>> {
     out.sort();
     out.dedup();
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn varints_are_postcards() {
+        assert_eq!(varint(0), [0]);
+        assert_eq!(varint(127), [127]);
+        assert_eq!(varint(128), [0x80, 1]);
+        assert_eq!(varint(u64::MAX).len(), 10);
+        let t = binary_tokens();
+        assert!(t.contains(&vec![0x80, 1]) && t.contains(&vec![geese_proto::WIRE_VERSION]));
+        // Zigzag -1 (postcard's i32/i64 of -1) is 1.
+        assert!(t.contains(&vec![1]));
+    }
+
+    #[test]
+    fn text_dictionary_holds_punctuation_words_and_edge_numbers() {
+        let m = Seeds::text(vec![b"<start> ::= <a> | b_c".to_vec()], &["::="]);
+        for w in ["::=", "start", "b_c", "18446744073709551616"] {
+            assert!(m.dictionary.contains(&w.as_bytes().to_vec()), "{w}");
+        }
+    }
+
+    #[test]
+    fn dictionary_lines_escape_what_afl_would_misread() {
+        assert_eq!(dictionary_line(b"::="), r#""::=""#);
+        assert_eq!(dictionary_line(b"a\"b\\c\n\x00\xff"), r#""a\x22b\x5cc\x0a\x00\xff""#);
+    }
+
+    #[test]
+    fn export_writes_every_target_s_seeds_and_dictionary() {
+        let dir = std::env::temp_dir().join(format!("geese-fuzz-export-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let exported = export(&dir).expect("temp dir is writable");
+        assert_eq!(exported.len(), crate::TARGETS.len());
+        for (e, t) in exported.iter().zip(crate::TARGETS) {
+            let seeds = (t.seeds)().inputs;
+            assert_eq!(e.seeds, seeds.len(), "{}", t.name);
+            assert_eq!(std::fs::read(dir.join(t.name).join("seed-000.bin")).ok().as_ref(), seeds.first(), "{}", t.name);
+            let dict = std::fs::read_to_string(dir.join(format!("{}.dict", t.name))).expect("a dictionary");
+            assert_eq!(dict.lines().count(), e.tokens, "{}", t.name);
+            assert!(dict.lines().all(|l| l.starts_with('"') && l.ends_with('"')), "{}", t.name);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -4,8 +4,9 @@
 //! `geese-fuzz-afl TARGET --replay PATH...` runs files, or every file of directories
 //! (a queue, crashes), through the target in one process, with panics reported: for a
 //! crash found, and for `afl-showmap` to count the edges a whole queue covers.
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
+use std::time::Duration;
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -26,28 +27,6 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Some("--replay") => replay(target, &args[2..]),
-        // Measurement only (removed with the old generator): the old driver's inputs,
-        // generated and run in this instrumented binary for N seconds, or only generated.
-        Some(mode @ ("--old" | "--old-generate-only")) => {
-            let secs: u64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(240);
-            let material = (target.material)();
-            let t0 = std::time::Instant::now();
-            let mut n = 0u64;
-            while t0.elapsed().as_secs() < secs {
-                for _ in 0..64 {
-                    let input = geese_fuzz::mutate::input(0, target.name, n, &material);
-                    if mode == "--old" {
-                        let _ = geese_fuzz::driver::run_quiet(|| {
-                            (target.run)(&input);
-                        });
-                    }
-                    n += 1;
-                }
-            }
-            let s = t0.elapsed().as_secs_f64();
-            eprintln!("old {}: {n} inputs in {s:.1} s, {:.0}/s", target.name, n as f64 / s);
-            ExitCode::SUCCESS
-        }
         Some(other) => {
             eprintln!("unknown argument {other:?} (expected --replay PATH...)");
             ExitCode::from(2)
@@ -55,51 +34,25 @@ fn main() -> ExitCode {
     }
 }
 
-/// Every file named, or under a directory named (not recursively), in path order.
-fn inputs(paths: &[String]) -> std::io::Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-    for p in paths.iter().map(Path::new) {
-        if p.is_dir() {
-            let mut files: Vec<PathBuf> =
-                std::fs::read_dir(p)?.filter_map(|e| e.ok().map(|e| e.path())).filter(|f| f.is_file()).collect();
-            files.sort();
-            out.extend(files);
-        } else {
-            out.push(p.to_path_buf());
-        }
-    }
-    Ok(out)
-}
-
-fn replay(target: &geese_fuzz::Target, paths: &[String]) -> ExitCode {
-    let files = match inputs(paths) {
-        Ok(f) => f,
-        Err(e) => {
-            eprintln!("cannot list the inputs: {e}");
-            return ExitCode::from(2);
-        }
-    };
-    let mut failed = 0;
-    for f in &files {
-        let input = match std::fs::read(f) {
-            Ok(b) => b,
-            Err(e) => {
-                eprintln!("{}: cannot read: {e}", f.display());
-                failed += 1;
-                continue;
+fn replay(target: &'static geese_fuzz::Target, paths: &[String]) -> ExitCode {
+    let paths: Vec<PathBuf> = paths.iter().map(PathBuf::from).collect();
+    // No time limit here: afl-fuzz and afl-showmap keep their own.
+    match geese_fuzz::replay::replay_paths(target, &paths, Duration::MAX) {
+        Ok(replays) => {
+            let failing: Vec<_> = replays.iter().filter_map(|r| r.outcome.as_ref().err().map(|e| (r, e))).collect();
+            for (r, e) in &failing {
+                println!("FAIL {}: {e}", r.path.display());
             }
-        };
-        if let Err(message) = geese_fuzz::driver::run_quiet(|| {
-            (target.run)(&input);
-        }) {
-            println!("PANIC {}: {message}", f.display());
-            failed += 1;
+            println!("{} inputs, {} failing", replays.len(), failing.len());
+            if failing.is_empty() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            }
         }
-    }
-    println!("{} inputs, {failed} failing", files.len());
-    if failed > 0 {
-        ExitCode::FAILURE
-    } else {
-        ExitCode::SUCCESS
+        Err(e) => {
+            eprintln!("cannot read the inputs: {e}");
+            ExitCode::from(2)
+        }
     }
 }
