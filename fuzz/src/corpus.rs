@@ -19,7 +19,73 @@ use geese_proto::{
 };
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
+
+/// The seed inputs of one target and the dictionary an engine inserts tokens of.
+#[derive(Clone, Debug, Default)]
+pub struct Seeds {
+    pub inputs: Vec<Vec<u8>>,
+    /// Tokens of the format: keywords and punctuation of a text format, the varints and
+    /// integer edges of postcard ([`binary_tokens`]) for a binary one.
+    pub dictionary: Vec<Vec<u8>>,
+}
+
+impl Seeds {
+    /// Inputs of a text format, with a dictionary of its `punctuation`, numbers at the
+    /// edges of the types values parse into, and every word (letters, digits, `_`, `-`,
+    /// `.`) found in the inputs: keys, rule and node names, values.
+    pub fn text(inputs: Vec<Vec<u8>>, punctuation: &[&str]) -> Seeds {
+        let mut dictionary: Vec<Vec<u8>> = punctuation.iter().map(|p| p.as_bytes().to_vec()).collect();
+        dictionary.extend(TEXT_NUMBERS.iter().map(|p| p.as_bytes().to_vec()));
+        let mut words = BTreeSet::new();
+        for s in &inputs {
+            let word = |c: &u8| c.is_ascii_alphanumeric() || matches!(c, b'_' | b'-' | b'.');
+            for w in s.split(|c| !word(c)).filter(|w| (2..=40).contains(&w.len())) {
+                words.insert(w.to_vec());
+            }
+        }
+        dictionary.extend(words.into_iter().take(2_000));
+        Seeds { inputs, dictionary }
+    }
+
+    /// Inputs of a postcard format, with [`binary_tokens`] as the dictionary.
+    pub fn binary(inputs: Vec<Vec<u8>>) -> Seeds {
+        Seeds { inputs, dictionary: binary_tokens() }
+    }
+}
+
+/// Numbers, as text, at the edges of the types configuration values parse into.
+const TEXT_NUMBERS: &[&str] = &[
+    "0",
+    "-0",
+    "1",
+    "-1",
+    "0.5",
+    "-0.0",
+    "1e308",
+    "1e309",
+    "-1e309",
+    "nan",
+    "inf",
+    "-inf",
+    "127",
+    "128",
+    "255",
+    "256",
+    "65535",
+    "65536",
+    "2147483647",
+    "2147483648",
+    "-2147483649",
+    "4294967295",
+    "4294967296",
+    "9223372036854775807",
+    "9223372036854775808",
+    "18446744073709551615",
+    "18446744073709551616",
+    "99999999999999999999999999",
+];
 
 /// The geometry of the default run (100 × 100, grid 10).
 pub fn geometry() -> Geometry {
@@ -445,4 +511,183 @@ pub fn run_config_texts() -> Vec<Vec<u8>> {
         }
     }
     out
+}
+
+/// A token as a line of an AFL dictionary: `"…"` with `"`, `\` and every byte outside
+/// printable ASCII written `\xNN`.
+pub fn dictionary_line(token: &[u8]) -> String {
+    let mut s = String::from("\"");
+    for &b in token {
+        if (0x20..0x7f).contains(&b) && b != b'"' && b != b'\\' {
+            s.push(b as char);
+        } else {
+            s.push_str(&format!("\\x{b:02x}"));
+        }
+    }
+    s.push('"');
+    s
+}
+
+/// What [`export`] wrote for one target.
+#[derive(Clone, Debug)]
+pub struct Exported {
+    pub target: &'static str,
+    pub seeds: usize,
+    /// Tokens in `<dir>/<target>.dict`.
+    pub tokens: usize,
+}
+
+/// Write the seeds of every target as files, `<dir>/<target>/seed-NNN.bin`, and the
+/// dictionary of each text target as `<dir>/<target>.dict` (AFL's format): the input
+/// directory and `-x` file of an engine run. Seeds are made in code from the crates'
+/// own encoders, so they follow every change of a message without a file to update.
+pub fn export(dir: &Path) -> std::io::Result<Vec<Exported>> {
+    let mut out = Vec::new();
+    for t in crate::TARGETS {
+        let m = (t.seeds)();
+        let d = dir.join(t.name);
+        std::fs::create_dir_all(&d)?;
+        for (i, s) in m.inputs.iter().enumerate() {
+            std::fs::write(d.join(format!("seed-{i:03}.bin")), s)?;
+        }
+        // AFL skips tokens longer than 128 bytes.
+        let tokens: Vec<String> =
+            m.dictionary.iter().filter(|t| !t.is_empty() && t.len() <= 128).map(|t| dictionary_line(t)).collect();
+        if !tokens.is_empty() {
+            std::fs::write(dir.join(format!("{}.dict", t.name)), tokens.join("\n") + "\n")?;
+        }
+        out.push(Exported { target: t.name, seeds: m.inputs.len(), tokens: tokens.len() });
+    }
+    Ok(out)
+}
+
+/// Unsigned values on the boundaries of varint lengths, integer widths and "sane"
+/// lengths and counts.
+const INTERESTING: &[u64] = &[
+    0,
+    1,
+    2,
+    3,
+    4,
+    7,
+    8,
+    16,
+    31,
+    32,
+    64,
+    100,
+    127,
+    128,
+    255,
+    256,
+    1000,
+    4095,
+    4096,
+    16_383,
+    16_384,
+    32_767,
+    32_768,
+    65_535,
+    65_536,
+    1 << 20,
+    1 << 24,
+    (1 << 31) - 1,
+    1 << 31,
+    u32::MAX as u64,
+    1 << 32,
+    1 << 53,
+    i64::MAX as u64,
+    1 << 63,
+    u64::MAX,
+];
+
+/// Postcard's varint (LEB128) of `v`.
+pub fn varint(mut v: u64) -> Vec<u8> {
+    let mut out = Vec::with_capacity(10);
+    loop {
+        let b = (v & 0x7f) as u8;
+        v >>= 7;
+        if v == 0 {
+            out.push(b);
+            return out;
+        }
+        out.push(b | 0x80);
+    }
+}
+
+/// The dictionary of the postcard targets: interesting integers in the encodings a
+/// decoder reads them in (varint, zigzag varint for negatives, over-long varints,
+/// 4- and 8-byte little-endian), IEEE specials, and the wire version byte. An engine
+/// does not know postcard's varints, so a length or count on a boundary would otherwise
+/// take it many tries.
+pub fn binary_tokens() -> Vec<Vec<u8>> {
+    let mut out = vec![vec![geese_proto::WIRE_VERSION]];
+    for &v in INTERESTING {
+        out.push(varint(v));
+        out.push(varint(v.wrapping_mul(2) ^ 1));
+        if v > 255 {
+            out.push(varint(v - 1));
+            out.push((v as u32).to_le_bytes().to_vec());
+            out.push(v.to_le_bytes().to_vec());
+        }
+    }
+    for n in [5, 10, 12] {
+        let mut b = vec![0x80u8; n];
+        b.push(0x01);
+        out.push(b);
+    }
+    for f in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, f64::MAX, f64::MIN_POSITIVE, 1e-310, -1.0] {
+        out.push(f.to_le_bytes().to_vec());
+    }
+    out.sort();
+    out.dedup();
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn varints_are_postcards() {
+        assert_eq!(varint(0), [0]);
+        assert_eq!(varint(127), [127]);
+        assert_eq!(varint(128), [0x80, 1]);
+        assert_eq!(varint(u64::MAX).len(), 10);
+        let t = binary_tokens();
+        assert!(t.contains(&vec![0x80, 1]) && t.contains(&vec![geese_proto::WIRE_VERSION]));
+        // Zigzag -1 (postcard's i32/i64 of -1) is 1.
+        assert!(t.contains(&vec![1]));
+    }
+
+    #[test]
+    fn text_dictionary_holds_punctuation_words_and_edge_numbers() {
+        let m = Seeds::text(vec![b"<start> ::= <a> | b_c".to_vec()], &["::="]);
+        for w in ["::=", "start", "b_c", "18446744073709551616"] {
+            assert!(m.dictionary.contains(&w.as_bytes().to_vec()), "{w}");
+        }
+    }
+
+    #[test]
+    fn dictionary_lines_escape_what_afl_would_misread() {
+        assert_eq!(dictionary_line(b"::="), r#""::=""#);
+        assert_eq!(dictionary_line(b"a\"b\\c\n\x00\xff"), r#""a\x22b\x5cc\x0a\x00\xff""#);
+    }
+
+    #[test]
+    fn export_writes_every_target_s_seeds_and_dictionary() {
+        let dir = std::env::temp_dir().join(format!("geese-fuzz-export-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let exported = export(&dir).expect("temp dir is writable");
+        assert_eq!(exported.len(), crate::TARGETS.len());
+        for (e, t) in exported.iter().zip(crate::TARGETS) {
+            let seeds = (t.seeds)().inputs;
+            assert_eq!(e.seeds, seeds.len(), "{}", t.name);
+            assert_eq!(std::fs::read(dir.join(t.name).join("seed-000.bin")).ok().as_ref(), seeds.first(), "{}", t.name);
+            let dict = std::fs::read_to_string(dir.join(format!("{}.dict", t.name))).expect("a dictionary");
+            assert_eq!(dict.lines().count(), e.tokens, "{}", t.name);
+            assert!(dict.lines().all(|l| l.starts_with('"') && l.ends_with('"')), "{}", t.name);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -1,45 +1,82 @@
-//! The fuzz targets' short run (issue 17, item 5): every target for a few thousand
-//! inputs, 0 panics and 0 hangs, and every kept crash input replayed.
+//! The fuzz targets' short, deterministic pass (issue 31, item 3): every target's seed
+//! inputs, a property over inputs near them and over random bytes, and every kept
+//! crash input, replayed through the target with panics caught.
 //!
-//! The long run is `cargo run --release -p geese-fuzz -- --iterations 1000000`; this one
-//! only keeps the targets honest between long runs (a seed input that stops decoding,
-//! a decoder change that panics on what used to be rejected). Inputs are fixed by the
-//! seed, so a failure here is reproducible with `geese-fuzz --seed` and `--first`.
-use geese_fuzz::driver::{replay_regressions, Options};
-use geese_fuzz::{run_target, TARGETS};
+//! The fuzzing is AFL++'s, outside the suite (fuzz/README.md); this pass keeps the
+//! targets honest between engine runs: a seed that stops decoding, a decoder change that
+//! panics on what it used to reject, a fixed crash coming back. The property's inputs
+//! come from a fixed-seed `proptest` runner, so a failure is the same on every run and
+//! shrinks to a small input.
+use geese_fuzz::replay::{replay_one, replay_regressions};
+use geese_fuzz::{Target, TARGETS};
+use proptest::prelude::*;
+use proptest::sample::Index;
+use proptest::test_runner::{Config, RngAlgorithm, TestCaseError, TestRng, TestRunner};
 use std::path::Path;
 use std::time::Duration;
 
-/// Inputs per target: about 3 s for all of them in release, most of it the campaign
-/// target (each accepted campaign validates every condition's run).
-const INPUTS: u64 = 3_000;
-
-/// Hang limit of the short run: above the CLI's 1 s, because this test shares the
-/// machine with the rest of the suite.
+/// Hang limit: far above any target's slowest input (a campaign file validating every
+/// condition's run takes a few ms), because this test shares the machine with the rest
+/// of the suite.
 const HANG: Duration = Duration::from_secs(5);
 
+/// Property cases per target: about 1 s for all targets in release.
+const CASES: u32 = 400;
+
 #[test]
-fn every_target_survives_a_short_run() {
-    let opts = Options { iterations: INPUTS, seed: 0x6ee5e, hang_limit: HANG, keep: 2, ..Options::default() };
+fn every_target_runs_its_seeds_and_accepts_some() {
     let mut bad = Vec::new();
     for t in TARGETS {
-        let r = run_target(t, &opts);
-        assert_eq!(r.inputs, INPUTS, "{}", r.target);
-        // Inputs that get past the outermost decoder: without them the target fuzzes
-        // nothing but the first checks (the least accepted, run_config, is about 8 %).
-        assert!(r.accepted * 50 > r.inputs, "{}: only {} of {} inputs accepted", r.target, r.accepted, r.inputs);
-        if !r.ok() {
-            for f in &r.failures {
-                bad.push(format!("{} input {} ({:?}): {}", r.target, f.index, f.kind, f.message));
+        let seeds = (t.seeds)();
+        assert!(!seeds.inputs.is_empty(), "{} has no seeds", t.name);
+        let mut accepted = 0;
+        for (i, s) in seeds.inputs.iter().enumerate() {
+            match replay_one(t, s, HANG) {
+                Ok(ran) => accepted += usize::from(ran.accepted),
+                Err(e) => bad.push(format!("{} seed {i}: {e}", t.name)),
             }
         }
+        // A target none of whose seeds decode fuzzes nothing but the first checks.
+        assert!(accepted > 0, "{}: none of its {} seeds is accepted", t.name, seeds.inputs.len());
     }
-    assert!(
-        bad.is_empty(),
-        "fuzz failures (replay with geese-fuzz --seed {} --first <input>):\n{}",
-        opts.seed,
-        bad.join("\n")
-    );
+    assert!(bad.is_empty(), "seed inputs fail:\n{}", bad.join("\n"));
+}
+
+/// Inputs of `t`: a seed with up to four bytes overwritten and maybe cut short (they get
+/// past the version byte and the first lengths), or random bytes.
+fn near_seeds(t: &Target) -> impl Strategy<Value = Vec<u8>> {
+    let seeds = (t.seeds)().inputs;
+    let n = seeds.len();
+    let edited = (0..n, proptest::collection::vec((any::<Index>(), any::<u8>()), 0..4), any::<Option<Index>>())
+        .prop_map(move |(i, edits, cut)| {
+            let mut s = seeds[i].clone();
+            if !s.is_empty() {
+                for (at, b) in edits {
+                    let at = at.index(s.len());
+                    s[at] = b;
+                }
+                if let Some(cut) = cut {
+                    s.truncate(cut.index(s.len()));
+                }
+            }
+            s
+        });
+    prop_oneof![4 => edited, 1 => proptest::collection::vec(any::<u8>(), 0..256)]
+}
+
+#[test]
+fn no_target_panics_or_hangs_near_its_seeds() {
+    let mut bad = Vec::new();
+    for t in TARGETS {
+        let config = Config { cases: CASES, failure_persistence: None, ..Config::default() };
+        let mut runner = TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha));
+        let outcome =
+            runner.run(&near_seeds(t), |input| replay_one(t, &input, HANG).map(drop).map_err(TestCaseError::fail));
+        if let Err(e) = outcome {
+            bad.push(format!("{}: {e}", t.name));
+        }
+    }
+    assert!(bad.is_empty(), "fuzz targets fail (fixed-seed proptest, same inputs every run):\n{}", bad.join("\n"));
 }
 
 #[test]
