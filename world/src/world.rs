@@ -697,11 +697,13 @@ impl World {
                 self.deregister_object(id);
             }
         }
+        // `gone` is in id order (objects are stored by id): a binary search per look-up.
+        let is_gone = |id: &ObjectId| gone.binary_search(id).is_ok();
         for b in &mut self.bodies {
-            b.carrying.retain(|o| !gone.contains(o));
+            b.carrying.retain(|o| !is_gone(o));
         }
         for o in &mut self.objects {
-            o.dropped.retain(|d| !gone.contains(d));
+            o.dropped.retain(|d| !is_gone(d));
         }
         self.cfg.task = task;
         self.total_item_weight = 0;

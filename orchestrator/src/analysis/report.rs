@@ -466,7 +466,7 @@ impl Report {
                 "from", "to", "condition", "reached", "share", "median", "IQR", "final med"
             )?;
             for r in &self.switches {
-                let to = if r.task == "foraging" { "nest" } else { "foraging" };
+                let to = r.task.parse::<geese_proto::Task>().map_or("?", |t| t.other().name());
                 let (med, iqr) = match &r.recovery {
                     Some(s) => (format!("{:.0}", s.median), format!("{:.0}-{:.0}", s.q1, s.q3)),
                     None => ("-".into(), "-".into()),

@@ -252,8 +252,7 @@ impl RunConfig {
             (_, p) => p,
         };
         // A run whose task changes learns in the union grammar of both tasks (issue 30.4).
-        let task = if self.switches().is_empty() { task_name(self.world.task) } else { "union" };
-        self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, task))
+        self.grammar.clone().unwrap_or_else(|| self.algorithm.grammar(phase, self.program_task()))
     }
 
     /// The task the agents' program is checked against
