@@ -19,8 +19,8 @@
 //!
 //! A hosting process (`wide`: it reads no cell topic, the world sends it its cells'
 //! percepts in [`HostPercepts`] and the packs of the processes it shares cells with in
-//! [`HostGenes`]) also publishes, just before its intents, the genes its agents will
-//! offer at the next step ([`AHEAD_CELL`]); when every process did, the world puts the
+//! [`HostGenes`]) also sends, in its intent batch, the genes its agents will offer at
+//! the next step ([`AHEAD_CELL`]); when every process did, the world puts the
 //! other processes' packs into the next step's percepts and step 2 is skipped.
 //!
 //! A process that reads cells one by one subscribes, before publishing its intents, to
@@ -679,11 +679,11 @@ impl Host {
         Ok(Out::Genes(bytes))
     }
 
-    /// Publish, ahead, the genes our agents offer at step `step` ([`AHEAD_CELL`]): each
-    /// agent's gene as it stands, except those of agents whose percept of that step the
-    /// injected loss will drop (they take no part in it). The world files them and
-    /// sends them on with the percepts of `step`.
-    fn ahead(&self, step: u64) -> Result<Out, HostError> {
+    /// The genes our agents offer at step `step`, packed to go ahead ([`AHEAD_CELL`],
+    /// in the intent batch of `step − 1`): each agent's gene as it stands, except those
+    /// of agents whose percept of that step the injected loss will drop (they take no
+    /// part in it). The world files them and sends them on with the percepts of `step`.
+    fn ahead(&self, step: u64) -> Result<Vec<u8>, HostError> {
         let p_loss = self.info.spec.loss.percept;
         let genes: Vec<GeneMsg> = (0..self.learners.len())
             .filter(|&k| p_loss <= 0.0 || loss_draw(self.loss_streams[k], step, 0) >= p_loss)
@@ -691,7 +691,7 @@ impl Host {
             .collect();
         let batch = GeneBatchRef { step, cell: AHEAD_CELL, genes: &genes, absent: &[] };
         let nested = nest_sized(&batch, batch.size_hint())?;
-        Self::bundle(step, &[Raw(&nested)])
+        Ok(pack(&[Raw(&nested)])?)
     }
 
     fn bare_step(&mut self, step: u64) -> Result<Vec<Out>, HostError> {
@@ -700,6 +700,7 @@ impl Host {
             intents: Vec::new(),
             idle: self.range.ids().collect(),
             counters: std::mem::take(&mut self.counters),
+            ahead: None,
         };
         self.done = step;
         Ok(vec![Out::Intents(encode(&batch)?)])
@@ -834,7 +835,7 @@ impl Host {
     }
 
     /// Step 3: finish every active agent with its cell's genes, and publish the intents
-    /// (after the subscriptions for the next step, and the genes sent ahead).
+    /// (after the subscriptions for the next step) with the genes sent ahead.
     fn finish(&mut self, now: Instant, mut out: Vec<Out>) -> Result<Vec<Out>, HostError> {
         let Some(p) = self.pending.take() else { return Ok(out) };
         let t = p.step;
@@ -878,14 +879,12 @@ impl Host {
                 out.push(Out::Unsubscribe(c));
             }
         }
-        let batch = IntentBatch { step: t, intents, idle: p.idle, counters: std::mem::take(&mut self.counters) };
-        // Our genes for the next step, before the intents that let the world start it
+        // Our genes for the next step go with the intents that let the world start it
         // (not while lateral transfer is off: if it comes on at the next step, that
         // step's genes go through the world during the step).
         let lateral = self.percepts.values().next().is_some_and(|p| p.regime.lateral_transfer);
-        if self.wide && lateral && t < self.info.spec.steps {
-            out.push(self.ahead(t + 1)?);
-        }
+        let ahead = if self.wide && lateral && t < self.info.spec.steps { Some(self.ahead(t + 1)?) } else { None };
+        let batch = IntentBatch { step: t, intents, idle: p.idle, counters: std::mem::take(&mut self.counters), ahead };
         tracing::trace!(target: "geese::flow", "agents {}: intents of step {t}", self.range);
         out.push(Out::Intents(encode(&batch)?));
         let end = Instant::now();

@@ -232,12 +232,15 @@ fn intents() -> Vec<IntentBatch> {
             intents: (0..6).map(intent).collect(),
             idle: vec![40, 41],
             counters: HostCounters::default(),
+            ahead: None,
         },
         IntentBatch {
             step: 1,
             intents: vec![],
             idle: vec![],
             counters: HostCounters { percepts_lost: 1, genes_late: 3, hostile: 4, ..HostCounters::default() },
+            // The ahead pack of `packs` (genes for step 4).
+            ahead: Some(packs().swap_remove(2)),
         },
     ]
 }

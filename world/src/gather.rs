@@ -10,7 +10,7 @@
 //!
 //! The Zenoh shell files batches from the subscriber callback (under a lock) so that the
 //! world's loop wakes once per step, when [`Gather::on_action`] reports the last one.
-use geese_proto::keys::{self, Parsed};
+use geese_proto::keys::{self, AgentRange, Parsed};
 use geese_proto::net::{IntentBatch, NetCounters};
 use geese_proto::{decode, Intent};
 
@@ -102,20 +102,33 @@ impl Gather {
     }
 
     /// File one intent batch received on `key`; true when nothing is pending any more.
+    /// Genes sent ahead with it are dropped: [`Server`](crate::server::Server) takes
+    /// them out first ([`Gather::open`], [`Gather::file`]).
     pub fn on_action(&mut self, key: &str, bytes: &[u8]) -> bool {
+        self.open(key, bytes).is_some_and(|(from, batch)| self.file(from, batch))
+    }
+
+    /// The sender and the batch of intents received on `key`, or `None` (counted as
+    /// hostile) when the key names no agent range or the bytes are no batch.
+    pub fn open(&mut self, key: &str, bytes: &[u8]) -> Option<(AgentRange, IntentBatch)> {
         let Parsed::Action { from } = keys::parse(&self.run, key) else {
             self.counters.hostile += 1;
             tracing::debug!("intents on a key that names no agent range: {key}");
-            return false;
+            return None;
         };
-        let batch: IntentBatch = match decode(bytes) {
-            Ok(b) => b,
+        match decode(bytes) {
+            Ok(b) => Some((from, b)),
             Err(e) => {
                 tracing::debug!("dropped intent batch on {key}: {e}");
                 self.counters.hostile += 1;
-                return false;
+                None
             }
-        };
+        }
+    }
+
+    /// File the intents of the process speaking for `from`; true when nothing is
+    /// pending any more.
+    pub fn file(&mut self, from: AgentRange, batch: IntentBatch) -> bool {
         let step = self.step;
         tracing::trace!(target: "geese::flow", "intents of step {} from {from} (awaiting {step})", batch.step);
         if batch.step != step || step == 0 {
@@ -170,7 +183,6 @@ impl Gather {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use geese_proto::keys::AgentRange;
     use geese_proto::net::HostCounters;
     use geese_proto::{encode, Op};
 
@@ -185,7 +197,7 @@ mod tests {
     }
 
     fn batch(step: u64, intents: Vec<Intent>, idle: Vec<u32>) -> Vec<u8> {
-        encode(&IntentBatch { step, intents, idle, counters: HostCounters::default() }).unwrap()
+        encode(&IntentBatch { step, intents, idle, counters: HostCounters::default(), ahead: None }).unwrap()
     }
 
     #[test]
@@ -271,7 +283,8 @@ mod tests {
         g.begin(1, |_| true);
         let c =
             HostCounters { percepts_lost: u32::MAX, percepts_missing: 1, genes_late: 2, hostile: 3, deadline_hits: 1 };
-        let b = |id| encode(&IntentBatch { step: 1, intents: vec![], idle: vec![id], counters: c }).unwrap();
+        let b =
+            |id| encode(&IntentBatch { step: 1, intents: vec![], idle: vec![id], counters: c, ahead: None }).unwrap();
         g.on_action(&key(0, 1), &b(0));
         g.on_action(&key(1, 1), &b(1));
         let got = g.close();

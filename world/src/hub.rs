@@ -255,11 +255,27 @@ impl GeneHub {
         out
     }
 
+    /// File the genes for step `step` that the process speaking for `from` sent ahead
+    /// with its intents ([`IntentBatch::ahead`](geese_proto::net::IntentBatch)): a pack
+    /// of one [`AHEAD_CELL`] batch; anything else is hostile.
+    pub fn on_ahead(&mut self, from: AgentRange, step: u64, packed: Vec<u8>) {
+        let mut scratch = std::mem::take(&mut self.unpacked);
+        match unpack(&packed, &mut scratch) {
+            Ok(nested)
+                if nested.len() == 1 && nested[0].open::<GeneBatchCell>().is_ok_and(|h| h.cell == AHEAD_CELL) =>
+            {
+                self.file_ahead(from, step, nested[0], packed);
+            }
+            _ => self.hostile += 1,
+        }
+        self.unpacked = scratch;
+    }
+
     /// Keep a pack sent ahead (`packed`, holding `nested`) of the process speaking for
     /// `from`, once checked: honest, for the step after the one begun (the only one a
     /// process sends genes ahead for), and the first of that step (as for a cell's
     /// batches). One for a later step is hostile; one for an earlier step is stale.
-    fn file_ahead(&mut self, from: AgentRange, step: u64, nested: Raw, packed: &[u8]) {
+    fn file_ahead(&mut self, from: AgentRange, step: u64, nested: Raw, packed: impl Into<Vec<u8>>) {
         let Ok(batch) = nested.open::<GeneBatchHead>() else {
             self.hostile += 1;
             return;
@@ -271,7 +287,7 @@ impl GeneHub {
         if step <= self.begun || self.ahead.get(&from).is_some_and(|(s, _)| *s == step) {
             return;
         }
-        self.ahead.insert(from, (step, packed.to_vec()));
+        self.ahead.insert(from, (step, packed.into()));
     }
 
     /// The packs sent ahead for step `step`, by sender; all others are dropped.

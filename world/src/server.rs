@@ -325,9 +325,15 @@ impl Server {
         self.stop = true;
     }
 
-    /// An intent batch; true when the step's gathering is complete (wake the loop).
+    /// An intent batch; true when the step's gathering is complete (wake the loop). The
+    /// genes it carries for the next step are filed first, so they are in before the
+    /// loop can begin that step.
     pub fn on_action(&mut self, key: &str, bytes: &[u8]) -> bool {
-        self.gather.on_action(key, bytes)
+        let Some((from, mut batch)) = self.gather.open(key, bytes) else { return false };
+        if let Some(packed) = batch.ahead.take() {
+            self.hub.on_ahead(from, batch.step.saturating_add(1), packed);
+        }
+        self.gather.file(from, batch)
     }
 
     /// A gene batch on its cell's key.
@@ -720,7 +726,7 @@ mod tests {
             .filter(|&id| s.world().bodies()[id as usize].live)
             .map(|agent| Intent { agent, step, heading: 0.0, ops: vec![], stats: Default::default() })
             .collect();
-        let b = IntentBatch { step, intents, idle: vec![], counters: HostCounters::default() };
+        let b = IntentBatch { step, intents, idle: vec![], counters: HostCounters::default(), ahead: None };
         s.on_action(&keys::agents_action(RUN, r), &encode(&b).unwrap())
     }
 

@@ -384,6 +384,7 @@ fn hostile_messages_are_dropped_and_counted_and_change_nothing() {
                 intents: vec![Intent { step, agent, heading: 0.0, ops: vec![], stats: AgentStats::default() }],
                 idle: vec![],
                 counters: Default::default(),
+                ahead: None,
             };
             let from0 = AgentRange::new(0, 3).expect("range");
             let mut bad_version = encode(&forged_for(0, 1)).expect("encode");
