@@ -1,4 +1,4 @@
-//! The `geese campaign`, `geese merge`, `geese report` and `geese export` subcommands (binary only):
+//! The `geese campaign`, `geese merge`, `geese report`, `geese slopes` and `geese export` subcommands (binary only):
 //! argument parsing and printing around the library's campaign, store and report.
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
@@ -100,6 +100,25 @@ pub struct ReportArgs {
     /// Tables only, no figures.
     #[arg(long)]
     pub no_plots: bool,
+}
+
+#[derive(Args)]
+pub struct SlopesArgs {
+    /// Results databases written by `geese campaign` (e.g. an ablation and an addition
+    /// campaign run with `series = "mutation"`).
+    #[arg(required = true)]
+    pub dbs: Vec<PathBuf>,
+    /// Figure to write, without extension (PNG and SVG): one row per task, a power and
+    /// an efficiency panel per campaign, one fitted line per series level.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, value_enum, default_value = "paper")]
+    pub efficiency: EfficiencyArg,
+    #[arg(long, value_enum, default_value = "paper")]
+    pub power: PowerArg,
+    /// Use at most the first N trials per (task, x level), as the reference plots (40).
+    #[arg(long)]
+    pub cap: Option<usize>,
 }
 
 #[derive(Args)]
@@ -235,25 +254,29 @@ pub fn merge_cmd(a: MergeArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn report_cmd(a: ReportArgs) -> Result<()> {
-    let store = Store::open(&a.db)?;
-    let opts = ReportOptions {
-        efficiency: match a.efficiency {
+fn report_options(efficiency: EfficiencyArg, power: PowerArg, cap: Option<usize>) -> Result<ReportOptions> {
+    if cap == Some(0) {
+        anyhow::bail!("--cap: must be at least 1");
+    }
+    Ok(ReportOptions {
+        efficiency: match efficiency {
             EfficiencyArg::Paper => EfficiencyChoice::Paper,
             EfficiencyArg::Code => EfficiencyChoice::Code,
             EfficiencyArg::Sec5Ablation => EfficiencyChoice::Variant(EfficiencyVariant::Sec5Ablation),
             EfficiencyArg::Sec5 => EfficiencyChoice::Variant(EfficiencyVariant::Sec5),
             EfficiencyArg::Sec7 => EfficiencyChoice::Variant(EfficiencyVariant::Sec7),
         },
-        power: match a.power {
+        power: match power {
             PowerArg::Paper => PowerVariant::Paper,
             PowerArg::Code => PowerVariant::Code,
         },
-        cap: a.cap,
-    };
-    if a.cap == Some(0) {
-        anyhow::bail!("--cap: must be at least 1");
-    }
+        cap,
+    })
+}
+
+pub fn report_cmd(a: ReportArgs) -> Result<()> {
+    let store = Store::open(&a.db)?;
+    let opts = report_options(a.efficiency, a.power, a.cap)?;
     let r = report::build(&store, &opts)?;
     r.print(&mut std::io::stdout().lock())?;
     let (sessions, wall) = store.campaign_wall()?;
@@ -268,6 +291,26 @@ pub fn report_cmd(a: ReportArgs) -> Result<()> {
         files.extend(r.plot(&store, &out)?);
     }
     println!("\nwrote {} files to {}", files.len(), out.display());
+    Ok(())
+}
+
+/// The power and efficiency slopes of several campaigns, per series level, in one table
+/// and one figure (issue 30.3: the four slopes of ablation and addition, both mutation
+/// rules).
+pub fn slopes_cmd(a: SlopesArgs) -> Result<()> {
+    let opts = report_options(a.efficiency, a.power, a.cap)?;
+    let mut reports = Vec::new();
+    for db in &a.dbs {
+        let store = Store::open(db)?;
+        let r = report::build(&store, &opts).with_context(|| format!("report of {}", db.display()))?;
+        if r.points.is_empty() {
+            anyhow::bail!("{}: no finished trial to fit", db.display());
+        }
+        reports.push(r);
+    }
+    let out = std::io::stdout();
+    let files = report::slopes(&reports, &a.out, &mut out.lock())?;
+    println!("\nwrote {}", files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", "));
     Ok(())
 }
 

@@ -19,7 +19,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
 mod campaign_cli;
-use campaign_cli::{CampaignArgs, ExportArgs, MergeArgs, ReportArgs};
+use campaign_cli::{CampaignArgs, ExportArgs, MergeArgs, ReportArgs, SlopesArgs};
 
 #[derive(Parser)]
 #[command(name = "geese", version, about = "Online evolution of resilient swarm behaviours (BeTr-GEESE)")]
@@ -57,6 +57,9 @@ enum Cmd {
     Merge(MergeArgs),
     /// Print metric tables and draw figures from a results database.
     Report(ReportArgs),
+    /// Power and efficiency slopes of several campaigns, one line per series level (e.g.
+    /// fixed vs stress mutation), in one table and one figure.
+    Slopes(SlopesArgs),
     /// Export a results database to CSV files.
     Export(ExportArgs),
     /// Draw a run's locality map (Fig. 5, from `geese run --locality`): one panel per
@@ -898,6 +901,7 @@ fn run() -> Result<()> {
         Cmd::Campaign(a) => campaign_cli::campaign_cmd(a),
         Cmd::Merge(a) => campaign_cli::merge_cmd(a),
         Cmd::Report(a) => campaign_cli::report_cmd(a),
+        Cmd::Slopes(a) => campaign_cli::slopes_cmd(a),
         Cmd::Export(a) => campaign_cli::export_cmd(a),
         Cmd::Locality(a) => locality_cmd(a),
         Cmd::Control(a) => geese_orchestrator::live::control::control_cmd(a),

@@ -32,17 +32,27 @@ pub struct Curve {
     pub q3: Vec<f64>,
 }
 
-/// One panel of a scatter figure.
+/// One panel of a scatter figure: per-trial points of one or more series (e.g. the
+/// fixed and the stress mutation rule), each with its own fitted line.
 #[derive(Clone, Debug)]
 pub struct ScatterPanel {
     pub title: String,
+    pub x_label: String,
     pub y_label: String,
+    pub series: Vec<ScatterSeries>,
+    /// Tick labels at the x positions.
+    pub ticks: Vec<(f64, String)>,
+}
+
+/// The points of one series in a scatter panel.
+#[derive(Clone, Debug)]
+pub struct ScatterSeries {
+    /// Legend text; a panel whose only series has an empty label draws no legend.
+    pub label: String,
     /// (x position, value); x positions are 1, 2, … (jittered when drawn).
     pub points: Vec<(f64, f64)>,
     /// (slope, intercept) in x positions.
     pub fit: Option<(f64, f64)>,
-    /// Tick labels at the x positions.
-    pub ticks: Vec<(f64, String)>,
 }
 
 /// Boxes at one x level, one per series (empty samples are skipped).
@@ -399,17 +409,21 @@ fn draw_curves<DB: DrawingBackend>(
     Ok(())
 }
 
-/// Per-trial points against x position, with the least-squares line, one panel each.
-pub fn scatter(stem: &Path, title: &str, panels: &[ScatterPanel], x_label: &str) -> Result<Vec<PathBuf>, PlotError> {
+/// Per-trial points against x position, with the least-squares line of each series,
+/// in a grid of `columns` panels per row.
+pub fn scatter(stem: &Path, title: &str, panels: &[ScatterPanel], columns: usize) -> Result<Vec<PathBuf>, PlotError> {
+    let columns = columns.clamp(1, panels.len().max(1));
+    let rows = panels.len().div_ceil(columns).max(1);
     let panel_w = panels
         .iter()
         .map(|p| 100 + p.ticks.len().max(1) as u32 * (tick_width(&p.ticks) + 16).max(60))
         .max()
         .unwrap_or(0)
         .clamp(560, 3000);
-    let h = 500 + panels.iter().map(|p| x_label_area(&p.ticks)).max().unwrap_or(0);
-    let w = panel_w * panels.len().max(1) as u32;
-    both(stem, (w, h), |r| draw_scatter(r, title, panels, x_label), |r| draw_scatter(r, title, panels, x_label))
+    let panel_h = 470 + panels.iter().map(|p| x_label_area(&p.ticks)).max().unwrap_or(0);
+    let size = (panel_w * columns as u32, 30 + panel_h * rows as u32);
+    let grid = (rows, columns);
+    both(stem, size, |r| draw_scatter(r, title, panels, grid), |r| draw_scatter(r, title, panels, grid))
 }
 
 /// Deterministic horizontal jitter in [−0.15, 0.15] for the i-th point.
@@ -462,13 +476,14 @@ fn draw_scatter<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
     panels: &[ScatterPanel],
-    x_label: &str,
+    grid: (usize, usize),
 ) -> Drawn {
     let root = root.titled(title, (FONT, 20)).map_err(s)?;
-    let areas = root.split_evenly((1, panels.len().max(1)));
+    let areas = root.split_evenly(grid);
     for (p, area) in panels.iter().zip(areas) {
         let k = p.ticks.len().max(1) as f64;
-        let (lo, hi) = p.points.iter().fold((0f64, 100f64), |(lo, hi), &(_, y)| (lo.min(y), hi.max(y)));
+        let (lo, hi) =
+            p.series.iter().flat_map(|c| &c.points).fold((0f64, 100f64), |(lo, hi), &(_, y)| (lo.min(y), hi.max(y)));
         let pad = (hi - lo) * 0.05;
         let mut chart = ChartBuilder::on(&area)
             .caption(&p.title, (FONT, 16))
@@ -482,27 +497,49 @@ fn draw_scatter<DB: DrawingBackend>(
             .x_labels(p.ticks.len() * 2 + 1)
             .x_label_formatter(&|_| String::new())
             .y_label_formatter(&|v| format!("{v:.0}"))
-            .x_desc(x_label)
+            .x_desc(&p.x_label)
             .y_desc(&p.y_label)
             .label_style((FONT, 13))
             .axis_desc_style((FONT, 15))
             .light_line_style(WHITE.mix(0.0))
             .draw()
             .map_err(s)?;
-        chart
-            .draw_series(
-                p.points
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &(x, y))| Circle::new((x + jitter(i), y), 3, color(0).mix(0.55).filled())),
-            )
-            .map_err(s)?;
-        if let Some((m, b)) = p.fit {
+        let several = p.series.len() > 1;
+        for (si, c) in p.series.iter().enumerate() {
+            // One series keeps the look of the paper's figures: blue points, red line.
+            let (dots, line) = if several { (color(si), color(si)) } else { (color(0), color(3)) };
+            // Series side by side within a level, so that they do not hide each other.
+            let shift = if several { (si as f64 - (p.series.len() - 1) as f64 / 2.0) * 0.3 } else { 0.0 };
+            let spread = if several { 0.4 } else { 1.0 };
             chart
-                .draw_series(LineSeries::new(
-                    [(0.5, m * 0.5 + b), (k + 0.5, m * (k + 0.5) + b)],
-                    color(3).stroke_width(2),
-                ))
+                .draw_series(
+                    c.points.iter().enumerate().map(|(i, &(x, y))| {
+                        Circle::new((x + shift + jitter(i) * spread, y), 3, dots.mix(0.55).filled())
+                    }),
+                )
+                .map_err(s)?;
+            if let Some((m, b)) = c.fit {
+                let drawn = chart
+                    .draw_series(LineSeries::new(
+                        [(0.5, m * 0.5 + b), (k + 0.5, m * (k + 0.5) + b)],
+                        line.stroke_width(2),
+                    ))
+                    .map_err(s)?;
+                if !c.label.is_empty() {
+                    drawn
+                        .label(&c.label)
+                        .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], line.stroke_width(2)));
+                }
+            }
+        }
+        if p.series.iter().any(|c| !c.label.is_empty() && c.fit.is_some()) {
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerLeft)
+                .label_font((FONT, 13))
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK.mix(0.5))
+                .draw()
                 .map_err(s)?;
         }
         draw_ticks(&area, &chart, &p.ticks)?;

@@ -86,6 +86,10 @@ pub struct Row {
 #[derive(Clone, Debug)]
 pub struct Fit {
     pub task: String,
+    /// The series level the line is fitted to, or empty: one line per series level when
+    /// the campaign has a series knob other than x (pooling, say, two mutation rules into
+    /// one line would hide the comparison the series is for).
+    pub series: String,
     pub metric: &'static str,
     /// Slope per x position (levels at 1, 2, 3, …, as plotted).
     pub slope_per_position: Option<f64>,
@@ -296,7 +300,13 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
         let failed = trials.iter().filter(|t| &t.task == task && &t.condition == label && t.outcome.is_none()).count();
         conditions.push(row(task, label.clone(), &pts, failed));
     }
-    // Pooled per x level, and fits.
+    // Pooled per x level, and fits: one line per series level when the series knob is
+    // not x itself, else one over all trials.
+    let x_name = meta("x")?;
+    let series_name = meta("series")?;
+    let series_levels = level_order(kept.iter().map(|t| (t.series.as_str(), t.condition_index)));
+    let fit_series: Vec<String> =
+        if series_name.is_empty() || series_name == x_name { vec![String::new()] } else { series_levels.clone() };
     let mut groups = Vec::new();
     let mut fits = Vec::new();
     for (task, levels) in &xs {
@@ -306,31 +316,37 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
             let failed = trials.iter().filter(|t| &t.task == task && t.x == *x && t.outcome.is_none()).count();
             groups.push(row(task, label, &pts, failed));
         }
-        let pts: Vec<&Point> = points.iter().filter(|p| &p.task == task).collect();
-        let pos: Vec<f64> = pts.iter().map(|p| p.x_pos).collect();
-        let unit: Vec<f64> = pts.iter().map(|p| p.x).collect();
-        for (metric, ys) in [
-            ("power", pts.iter().map(|p| p.power).collect::<Vec<_>>()),
-            ("efficiency", pts.iter().map(|p| p.efficiency).collect::<Vec<_>>()),
-        ] {
-            let by_pos = metrics::ols(&pos, &ys);
-            fits.push(Fit {
-                task: task.clone(),
-                metric,
-                slope_per_position: by_pos.map(|f| f.0),
-                intercept_per_position: by_pos.map(|f| f.1),
-                slope_per_unit: metrics::ols(&unit, &ys).map(|f| f.0),
-                n: ys.len(),
-            });
+        for series in &fit_series {
+            let pts: Vec<&Point> =
+                points.iter().filter(|p| &p.task == task && (series.is_empty() || &p.series == series)).collect();
+            if pts.is_empty() {
+                continue;
+            }
+            let pos: Vec<f64> = pts.iter().map(|p| p.x_pos).collect();
+            let unit: Vec<f64> = pts.iter().map(|p| p.x).collect();
+            for (metric, ys) in [
+                ("power", pts.iter().map(|p| p.power).collect::<Vec<_>>()),
+                ("efficiency", pts.iter().map(|p| p.efficiency).collect::<Vec<_>>()),
+            ] {
+                let by_pos = metrics::ols(&pos, &ys);
+                fits.push(Fit {
+                    task: task.clone(),
+                    series: series.clone(),
+                    metric,
+                    slope_per_position: by_pos.map(|f| f.0),
+                    intercept_per_position: by_pos.map(|f| f.1),
+                    slope_per_unit: metrics::ols(&unit, &ys).map(|f| f.0),
+                    n: ys.len(),
+                });
+            }
         }
     }
-    let series_levels = level_order(kept.iter().map(|t| (t.series.as_str(), t.condition_index)));
     let switches = switch_rows(store, &kept, threshold)?;
     Ok(Report {
         name: meta("name")?,
         description: meta("description")?,
-        x_name: meta("x")?,
-        series_name: meta("series")?,
+        x_name,
+        series_name,
         series_levels,
         efficiency,
         power: opts.power,
@@ -344,8 +360,14 @@ pub fn build(store: &Store, opts: &ReportOptions) -> Result<Report, ReportError>
     })
 }
 
+/// A slope with three decimals, or three significant digits when it is smaller (a
+/// slope per step of an insertion time is about 1e-4).
 fn fmt_opt(v: Option<f64>) -> String {
-    v.map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into())
+    match v {
+        None => "-".into(),
+        Some(x) if x != 0.0 && x.abs() < 0.01 => format!("{x:.2e}"),
+        Some(x) => format!("{x:.3}"),
+    }
 }
 
 fn fmt_stats(s: &Option<Stats>) -> [String; 3] {
@@ -436,15 +458,18 @@ impl Report {
             writeln!(out, "\nPooled by {}:", self.x_name)?;
             table(out, &self.x_name, &self.groups)?;
             writeln!(out, "\nLeast-squares slope across conditions (per trial metric vs {}):", self.x_name)?;
+            let w = self.fits.iter().map(|f| f.series.len()).max().unwrap_or(0);
+            let series = if w == 0 { String::new() } else { format!("{:<w$} ", self.series_name, w = w.max(6)) };
             writeln!(
                 out,
-                "{:<9} {:<10} {:>6} {:>14} {:>14}",
+                "{:<9} {series}{:<10} {:>6} {:>14} {:>14}",
                 "task", "metric", "trials", "slope/position", "slope/unit"
             )?;
             for f in &self.fits {
+                let series = if w == 0 { String::new() } else { format!("{:<w$} ", f.series, w = w.max(6)) };
                 writeln!(
                     out,
-                    "{:<9} {:<10} {:>6} {:>14} {:>14}",
+                    "{:<9} {series}{:<10} {:>6} {:>14} {:>14}",
                     f.task,
                     f.metric,
                     f.n,
@@ -557,12 +582,14 @@ impl Report {
         };
         files.push(rows_csv("conditions.csv", &self.conditions)?);
         files.push(rows_csv("pooled.csv", &self.groups)?);
-        let mut s = String::from("task,metric,trials,slope_per_position,intercept_per_position,slope_per_unit\n");
+        let mut s =
+            String::from("task,series,metric,trials,slope_per_position,intercept_per_position,slope_per_unit\n");
         let o = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
         for f in &self.fits {
             s.push_str(&format!(
-                "{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{}\n",
                 f.task,
+                csv_field(&f.series),
                 f.metric,
                 f.n,
                 o(f.slope_per_position),
@@ -592,6 +619,62 @@ impl Report {
         }
         files.push(write_file(&dir.join("points.csv"), &s)?);
         Ok(files)
+    }
+
+    /// The power and efficiency panels of `task` (Figs. 6, 10): every trial's point
+    /// against its x level, and the least-squares line of each series level. `prefix`
+    /// starts the panel titles (a figure of several campaigns names each).
+    pub fn resilience_panels(&self, task: &str, prefix: &str) -> Vec<ScatterPanel> {
+        let pts: Vec<&Point> = self.points.iter().filter(|p| p.task == task).collect();
+        let mut ticks: Vec<(f64, String)> = pts.iter().map(|p| (p.x_pos, p.x_label.clone())).collect();
+        ticks.sort_by(|a, b| a.0.total_cmp(&b.0));
+        ticks.dedup();
+        let x_label = if self.x_name.is_empty() { "condition".to_string() } else { self.x_name.clone() };
+        let line = |f: &Fit| Some((f.slope_per_position?, f.intercept_per_position?));
+        let panel = |m: &'static str, y: &dyn Fn(&Point) -> f64, y_label: String| {
+            let fits: Vec<&Fit> = self.fits.iter().filter(|f| f.task == task && f.metric == m).collect();
+            let slopes: Vec<String> = fits
+                .iter()
+                .map(|f| {
+                    let who = if f.series.is_empty() { String::new() } else { format!("{}: ", f.series) };
+                    match line(f) {
+                        Some((a, b)) if fits.len() == 1 => format!("{who}least squares {a:.3}·level + {b:.2}"),
+                        Some((a, _)) => format!("{who}{a:+.2}/level"),
+                        None => format!("{who}no fitted line (one level)"),
+                    }
+                })
+                .collect();
+            ScatterPanel {
+                title: format!("{prefix}{m}: {}", slopes.join(", ")),
+                x_label: x_label.clone(),
+                y_label,
+                series: fits
+                    .iter()
+                    .map(|f| plot::ScatterSeries {
+                        label: if f.series.is_empty() {
+                            String::new()
+                        } else {
+                            format!("{} = {}", self.series_name, f.series)
+                        },
+                        points: pts
+                            .iter()
+                            .filter(|p| f.series.is_empty() || p.series == f.series)
+                            .map(|p| (p.x_pos, y(p)))
+                            .collect(),
+                        fit: line(f),
+                    })
+                    .collect(),
+                ticks: ticks.clone(),
+            }
+        };
+        vec![
+            panel(
+                "power",
+                &|p| p.power,
+                format!("power ({})", if self.power == PowerVariant::Paper { "paper" } else { "code" }),
+            ),
+            panel("efficiency", &|p| p.efficiency, format!("efficiency ({})", self.efficiency.name())),
+        ]
     }
 
     /// Draw every figure into `dir` (PNG and SVG each); returns the files written.
@@ -669,29 +752,10 @@ impl Report {
         files.extend(self.plot_learning(store, dir, &kept, by_series, &x_name)?);
         for task in &tasks {
             let pts: Vec<&Point> = self.points.iter().filter(|p| &p.task == task).collect();
-            let mut ticks: Vec<(f64, String)> = pts.iter().map(|p| (p.x_pos, p.x_label.clone())).collect();
-            ticks.dedup();
-            let fit = |m: &str| self.fits.iter().find(|f| &f.task == task && f.metric == m);
-            let panel = |m: &'static str, y: &dyn Fn(&Point) -> f64, y_label: String| ScatterPanel {
-                title: match fit(m).and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?))) {
-                    Some((a, b)) => format!("{m}: least squares {a:.3}·level + {b:.2}"),
-                    None => format!("{m}: no fitted line (one level)"),
-                },
-                y_label,
-                points: pts.iter().map(|p| (p.x_pos, y(p))).collect(),
-                fit: fit(m).and_then(|f| Some((f.slope_per_position?, f.intercept_per_position?))),
-                ticks: ticks.clone(),
-            };
-            let panels = [
-                panel(
-                    "power",
-                    &|p| p.power,
-                    format!("power ({})", if self.power == PowerVariant::Paper { "paper" } else { "code" }),
-                ),
-                panel("efficiency", &|p| p.efficiency, format!("efficiency ({})", self.efficiency.name())),
-            ];
             let title = format!("{} ({task}): power and efficiency vs {x_name}", self.name);
-            files.extend(plot::scatter(&dir.join(format!("resilience-{task}")), &title, &panels, &x_name)?);
+            let panels = self.resilience_panels(task, "");
+            files.extend(plot::scatter(&dir.join(format!("resilience-{task}")), &title, &panels, 2)?);
+            let ticks = panels.first().map(|p| p.ticks.clone()).unwrap_or_default();
             // Box plots per x level, grouped by series level.
             let series: Vec<&String> =
                 self.series_levels.iter().filter(|s| pts.iter().any(|p| &p.series == *s)).collect();
@@ -798,6 +862,69 @@ impl Report {
 
 /// The median and quartiles of task % per step (at most about 600 steps drawn, the last
 /// always), starting from 0 % at step 0.
+/// Print the power and efficiency slopes of several campaigns (one row per campaign,
+/// task, series level and metric), write them to `stem.csv`, and draw them on one
+/// figure `stem.png`/`.svg`: a row per task, each campaign's power and efficiency panels
+/// side by side.
+pub fn slopes(reports: &[Report], stem: &Path, out: &mut dyn Write) -> Result<Vec<PathBuf>, ReportError> {
+    let io = |source| ReportError::Io { path: stem.into(), source };
+    let mut tasks: Vec<&str> = Vec::new();
+    for r in reports {
+        for p in &r.points {
+            if !tasks.contains(&p.task.as_str()) {
+                tasks.push(&p.task);
+            }
+        }
+    }
+    let mut csv = String::from("campaign,x,task,series,metric,trials,slope_per_position,slope_per_unit\n");
+    writeln!(
+        out,
+        "{:<24} {:<9} {:<8} {:<10} {:>6} {:>14} {:>14}",
+        "campaign", "task", "series", "metric", "trials", "slope/position", "slope/unit"
+    )
+    .map_err(io)?;
+    for r in reports {
+        for f in &r.fits {
+            writeln!(
+                out,
+                "{:<24} {:<9} {:<8} {:<10} {:>6} {:>14} {:>14}",
+                r.name,
+                f.task,
+                f.series,
+                f.metric,
+                f.n,
+                fmt_opt(f.slope_per_position),
+                fmt_opt(f.slope_per_unit)
+            )
+            .map_err(io)?;
+            let o = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
+            csv.push_str(&format!(
+                "{},{},{},{},{},{},{},{}\n",
+                csv_field(&r.name),
+                csv_field(&r.x_name),
+                f.task,
+                csv_field(&f.series),
+                f.metric,
+                f.n,
+                o(f.slope_per_position),
+                o(f.slope_per_unit)
+            ));
+        }
+    }
+    if let Some(dir) = stem.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
+    }
+    let mut files = vec![write_file(&stem.with_extension("csv"), &csv)?];
+    let panels: Vec<ScatterPanel> = tasks
+        .iter()
+        .flat_map(|task| reports.iter().flat_map(move |r| r.resilience_panels(task, &format!("{} ({task}), ", r.name))))
+        .collect();
+    let names: Vec<&str> = reports.iter().map(|r| r.name.as_str()).collect();
+    let title = format!("power and efficiency slopes: {}", names.join(", "));
+    files.extend(plot::scatter(stem, &title, &panels, 2 * reports.len())?);
+    Ok(files)
+}
+
 fn curve(label: String, by_step: BTreeMap<u64, Vec<f64>>) -> Curve {
     let mut c = Curve { label, steps: vec![0], median: vec![0.0], q1: vec![0.0], q3: vec![0.0] };
     let every = (by_step.len() / 600).max(1);

@@ -320,6 +320,15 @@ fn smoke_campaigns_report_and_export() {
     for f in ["conditions.csv", "pooled.csv", "fits.csv", "points.csv"] {
         assert!(out_dir.join(f).exists(), "{f}");
     }
+    // One fitted line per series level (st): st = 7 spans two ip levels, st = 5 one.
+    let fits = csv_rows(&out_dir.join("fits.csv"));
+    let slope = |st: &str| {
+        let r = fits.iter().find(|r| r["series"] == st && r["metric"] == "power").expect("fit of the series level");
+        r["slope_per_position"].clone()
+    };
+    assert!(slope("7").parse::<f64>().is_ok(), "{fits:?}");
+    assert_eq!(slope("5"), "", "one level, no line");
+    assert_eq!(fits.iter().filter(|r| r["metric"] == "power").count(), 3, "{fits:?}");
     // Reference-code metrics need the campaign's code_efficiency (fig4 has none).
     let out = Command::new(&bin)
         .arg("report")
@@ -339,6 +348,29 @@ fn smoke_campaigns_report_and_export() {
         .expect("report");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(String::from_utf8_lossy(&out.stdout).contains("sec5-ablation"));
+
+    // Several campaigns' slopes on one figure, one line per series level.
+    let stem = dir.path().join("slopes/both");
+    let fig4 = dir.path().join("smoke-fig4-ip-st.sqlite");
+    let out = Command::new(&bin).arg("slopes").arg(&fig4).arg(&db).arg("--out").arg(&stem).output().expect("slopes");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("smoke-fig4-ip-st") && stdout.contains("smoke-ablation"), "{stdout}");
+    png_ok(&stem.with_extension("png"));
+    let rows = csv_rows(&stem.with_extension("csv"));
+    // fig4: 3 st levels × 2 metrics; ablation: no series, 2 tasks × 2 metrics.
+    assert_eq!(rows.len(), 6 + 4, "{rows:?}");
+    assert!(rows.iter().any(|r| r["campaign"] == "smoke-ablation" && r["x"] == "obstacles" && r["series"].is_empty()));
+    let svg = std::fs::read_to_string(stem.with_extension("svg")).expect("svg");
+    assert!(svg.contains("st = 7") && svg.contains("smoke-ablation (nest), power"), "legend and panel titles");
+    let missing = dir.path().join("nothing-here.sqlite");
+    let out = Command::new(&bin).arg("slopes").arg(&missing).arg("--out").arg(&stem).output().expect("slopes");
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("nothing-here.sqlite"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 
     // CSV export: one trials row per trial, step rows of every trial, the manifest.
     let csv = dir.path().join("csv");
