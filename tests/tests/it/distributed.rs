@@ -181,7 +181,9 @@ fn hosted_agents_and_perturbations_equal_in_process() {
 }
 
 /// Issue 30.5: the world server applies a change of task (foraging → nest → foraging)
-/// at the same step as the in-process trial, with the same trajectory.
+/// at the same step as the in-process trial, with the same trajectory; the agent
+/// processes learn with the stress mutation rule (issue 30.3) as the in-process
+/// learners do.
 #[test]
 fn a_task_switch_over_zenoh_equals_in_process() {
     let _one_at_a_time = serial();
@@ -191,7 +193,10 @@ fn a_task_switch_over_zenoh_equals_in_process() {
         Scheduled { at: 80, change: Perturbation::SwitchTask(geese_world::Task::Nest) },
         Scheduled { at: 160, change: Perturbation::SwitchTask(geese_world::Task::Foraging) },
     ];
+    let fixed = in_process(&cfg);
+    cfg.learner.mutation = geese_agent::MutationRule::Stress;
     let expected = in_process(&cfg);
+    assert_ne!(fixed, expected, "the stress rule changed nothing: the test could not tell it travels");
     assert_eq!((expected[80].task_pct, expected[160].task_pct), (0.0, 0.0), "the switches restart the task %");
     let (got, pids) = distributed(&cfg, &options(3, Some(8)));
     assert_eq!(expected, step_reports(&got));
