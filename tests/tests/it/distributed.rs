@@ -874,6 +874,16 @@ fn every_algorithm_and_fixed_populations_equal_their_in_process_runs_over_zenoh(
     let mut betr = config(24, 100, 5, Layout::Paper);
     betr.sample = Some(0.5);
     cases.push(("betr-geese + parallel fixed test", betr));
+    // One-phase fusion (issue 30.2) with the carrying and delivery terms (30.1, H7):
+    // agents collect, then wire once their GeneDicts settle, in one run.
+    // (60 agents for 900 steps: a GeneDict must hold all five controller classes
+    // before its agent may wire, and small swarms take longer to fill one.)
+    let mut one = config(60, 900, 2, Layout::Reference);
+    one.algorithm = Algorithm::MultiGeese;
+    one.phase = Some(geese_agent::Phase::One);
+    one.learner.one_phase_settle = 30;
+    one.learner.terms = Some("E+B+C+F".parse().expect("terms"));
+    cases.push(("multi-geese one-phase, E+B+C+F", one));
     for task in [geese_world::Task::Foraging, geese_world::Task::Nest] {
         let mut fixed = config(24, 120, 6, Layout::Paper);
         fixed.world.task = task;
@@ -914,11 +924,21 @@ fn every_algorithm_and_fixed_populations_equal_their_in_process_runs_over_zenoh(
             "multi-geese collect + combine" => &["collect", "combine"],
             "betr-geese + parallel fixed test" => &["learn", "fixed"],
             "geese-bt" => &["learn"],
+            "multi-geese one-phase, E+B+C+F" => &["one-phase"],
             _ => &["fixed"],
         };
         assert_eq!(stages, expected, "{name}");
+        if *name == "multi-geese one-phase, E+B+C+F" {
+            // Wiring members act through controller slots ([Act]ExploreNormal[/Act], …);
+            // collecting ones through actions (Explore_0_Normal, …).
+            let slots =
+                ["ExploreNormal", "MoveTowardsNormal", "MoveAwayNormal", "CompositeSingleCarry", "CompositeDrop"];
+            let wires = |p: &str| slots.iter().any(|c| p.contains(&format!("[Act]{c}[/Act]")));
+            let wiring = want_pops[0].1.members.iter().filter(|m| wires(&m.phenotype)).count();
+            assert!(wiring > 0, "{name}: no agent started wiring, so the test covers only collecting");
+        }
         for (stage, pop) in &want_pops {
-            assert_eq!(pop.members.len(), 24, "{name} {stage}: one member per agent");
+            assert_eq!(pop.members.len(), cfg.world.agents as usize, "{name} {stage}: one member per agent");
         }
     }
 }
