@@ -90,13 +90,8 @@ pub struct ReportArgs {
     /// Directory for the figures and metric CSVs (default: <db without extension>-report).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    #[arg(long, value_enum, default_value = "paper")]
-    pub efficiency: EfficiencyArg,
-    #[arg(long, value_enum, default_value = "paper")]
-    pub power: PowerArg,
-    /// Use at most the first N trials per (task, x level), as the reference plots (40).
-    #[arg(long)]
-    pub cap: Option<usize>,
+    #[command(flatten)]
+    pub metrics: MetricArgs,
     /// Tables only, no figures.
     #[arg(long)]
     pub no_plots: bool,
@@ -112,6 +107,13 @@ pub struct SlopesArgs {
     /// an efficiency panel per campaign, one fitted line per series level.
     #[arg(long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub metrics: MetricArgs,
+}
+
+/// How `geese report` and `geese slopes` compute power and efficiency.
+#[derive(Args, Clone, Copy)]
+pub struct MetricArgs {
     #[arg(long, value_enum, default_value = "paper")]
     pub efficiency: EfficiencyArg,
     #[arg(long, value_enum, default_value = "paper")]
@@ -254,7 +256,8 @@ pub fn merge_cmd(a: MergeArgs) -> Result<()> {
     Ok(())
 }
 
-fn report_options(efficiency: EfficiencyArg, power: PowerArg, cap: Option<usize>) -> Result<ReportOptions> {
+fn report_options(m: &MetricArgs) -> Result<ReportOptions> {
+    let MetricArgs { efficiency, power, cap } = *m;
     if cap == Some(0) {
         anyhow::bail!("--cap: must be at least 1");
     }
@@ -276,7 +279,7 @@ fn report_options(efficiency: EfficiencyArg, power: PowerArg, cap: Option<usize>
 
 pub fn report_cmd(a: ReportArgs) -> Result<()> {
     let store = Store::open(&a.db)?;
-    let opts = report_options(a.efficiency, a.power, a.cap)?;
+    let opts = report_options(&a.metrics)?;
     let r = report::build(&store, &opts)?;
     r.print(&mut std::io::stdout().lock())?;
     let (sessions, wall) = store.campaign_wall()?;
@@ -298,7 +301,7 @@ pub fn report_cmd(a: ReportArgs) -> Result<()> {
 /// and one figure (issue 30.3: the four slopes of ablation and addition, both mutation
 /// rules).
 pub fn slopes_cmd(a: SlopesArgs) -> Result<()> {
-    let opts = report_options(a.efficiency, a.power, a.cap)?;
+    let opts = report_options(&a.metrics)?;
     let mut reports = Vec::new();
     for db in &a.dbs {
         let store = Store::open(db)?;

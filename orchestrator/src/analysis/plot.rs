@@ -121,6 +121,22 @@ fn color(i: usize) -> RGBColor {
     PALETTE[i % PALETTE.len()]
 }
 
+/// The legend of `chart`'s labelled series, in one style for every figure.
+fn legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    at: SeriesLabelPosition,
+    font: f64,
+) -> Drawn {
+    chart
+        .configure_series_labels()
+        .position(at)
+        .label_font((FONT, font))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK.mix(0.5))
+        .draw()
+        .map_err(s)
+}
+
 fn register_fonts() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
@@ -398,14 +414,7 @@ fn draw_curves<DB: DrawingBackend>(
             .label(c.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(3)));
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .label_font((FONT, 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK.mix(0.5))
-        .draw()
-        .map_err(s)?;
+    legend(&mut chart, SeriesLabelPosition::LowerRight, 14.0)?;
     Ok(())
 }
 
@@ -533,14 +542,7 @@ fn draw_scatter<DB: DrawingBackend>(
             }
         }
         if p.series.iter().any(|c| !c.label.is_empty() && c.fit.is_some()) {
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::LowerLeft)
-                .label_font((FONT, 13))
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK.mix(0.5))
-                .draw()
-                .map_err(s)?;
+            legend(&mut chart, SeriesLabelPosition::LowerLeft, 13.0)?;
         }
         draw_ticks(&area, &chart, &p.ticks)?;
     }
@@ -669,14 +671,7 @@ fn draw_boxes<DB: DrawingBackend>(
     }
     draw_ticks(root, &chart, &ticks)?;
     if series.iter().any(|l| !l.is_empty()) {
-        chart
-            .configure_series_labels()
-            .position(legend_corner(groups, axis.range))
-            .label_font((FONT, 14))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK.mix(0.5))
-            .draw()
-            .map_err(s)?;
+        legend(&mut chart, legend_corner(groups, axis.range), 14.0)?;
     }
     Ok(())
 }
@@ -795,14 +790,7 @@ fn draw_locality<DB: DrawingBackend>(
             }
         }
         if overlay && !panels.is_empty() {
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::LowerLeft)
-                .label_font((FONT, 12))
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK.mix(0.5))
-                .draw()
-                .map_err(s)?;
+            legend(&mut chart, SeriesLabelPosition::LowerLeft, 12.0)?;
         }
     }
     Ok(())
