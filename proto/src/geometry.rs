@@ -98,21 +98,26 @@ impl Geometry {
         Ok(Geometry { width, height, grid })
     }
 
+    #[inline]
     pub fn half_w(&self) -> i32 {
         self.width / 2
     }
+    #[inline]
     pub fn half_h(&self) -> i32 {
         self.height / 2
     }
     /// Number of columns (cells along x).
+    #[inline]
     pub fn cols(&self) -> i32 {
         self.width / self.grid
     }
     /// Number of rows (cells along y).
+    #[inline]
     pub fn rows(&self) -> i32 {
         self.height / self.grid
     }
     /// Number of cells (widened: the product is computed in `usize`).
+    #[inline]
     pub fn cell_count(&self) -> usize {
         self.cols() as usize * self.rows() as usize
     }
@@ -123,6 +128,7 @@ impl Geometry {
     /// Half the arena is a multiple of the grid, so the column of x is
     /// ⌊(x + W/2) / GS⌋, clamped: one division per axis in the usual case (this runs
     /// for every agent and object look-up of every step).
+    #[inline]
     pub fn col_row(&self, p: Pos) -> (i32, i32) {
         let along = |v: i32, extent: i32| {
             let t = i64::from(v) + i64::from(extent / 2);
@@ -137,12 +143,14 @@ impl Geometry {
         (along(p.x, self.width), along(p.y, self.height))
     }
 
+    #[inline]
     pub fn cell_of(&self, p: Pos) -> CellIdx {
         let (c, r) = self.col_row(p);
         (r * self.cols() + c) as CellIdx
     }
 
     /// Column and row of a cell index.
+    #[inline]
     pub fn cell_col_row(&self, cell: CellIdx) -> (i32, i32) {
         let c = cell as i32;
         (c % self.cols(), c / self.cols())

@@ -20,6 +20,8 @@
 //! make every offspring, as before).
 
 use std::collections::{HashMap, HashSet};
+
+use foldhash::fast::FixedState;
 use std::rc::Rc;
 use std::sync::Mutex;
 
@@ -49,7 +51,7 @@ pub(crate) fn bound(c: &Compiled, start: u32, max_tree_depth: usize) -> Bound {
     if !c.scored_from_runs || limit == 0 {
         return unknown;
     }
-    let mut search = Search { c, limit, memo: HashMap::new(), too_big: false };
+    let mut search = Search { c, limit, memo: HashMap::default(), too_big: false };
     let origin = DiversityScan::default();
     let (within, deep_last) = (search.rule(start, 1, origin, false), search.rule(start, 1, origin, true));
     if search.too_big {
@@ -99,7 +101,9 @@ struct Search<'c> {
     c: &'c Compiled,
     limit: u32,
     /// (rule, depth, last-is-deep, abstract state on entry) → abstract states on exit.
-    memo: HashMap<(u32, u32, bool, DiversityScan), Ends>,
+    /// Hashed with foldhash: with SipHash the search of the foraging grammar was 3 % of
+    /// a 2,000-step default run's instructions (it runs once per process and grammar).
+    memo: HashMap<(u32, u32, bool, DiversityScan), Ends, FixedState>,
     too_big: bool,
 }
 
@@ -118,7 +122,7 @@ impl Search<'_> {
         }
         let c = self.c;
         let r = &c.rules[rule as usize];
-        let mut out: HashSet<DiversityScan> = HashSet::new();
+        let mut out: HashSet<DiversityScan, FixedState> = HashSet::default();
         if d > self.limit {
             // Only the last symbol may be this deep: it is popped and expanded, and any
             // symbol it expands to would come after it.
@@ -156,7 +160,7 @@ impl Search<'_> {
 
     /// Exit states of one item (a run or a rule) at depth `d` from each of `states`.
     fn item_all(&mut self, item: u64, d: u32, states: &[DiversityScan], deep_last: bool) -> Vec<DiversityScan> {
-        let mut out: HashSet<DiversityScan> = HashSet::new();
+        let mut out: HashSet<DiversityScan, FixedState> = HashSet::default();
         if item & PACKED_NT != 0 {
             let rule = (item & !PACKED_NT) as u32;
             for &s in states {
