@@ -20,10 +20,10 @@
 //! make every offspring, as before).
 
 use std::collections::{HashMap, HashSet};
-
-use foldhash::fast::FixedState;
 use std::rc::Rc;
 use std::sync::Mutex;
+
+use foldhash::fast::FixedState;
 
 use super::compiled::Compiled;
 use super::diversity::DiversityScan;
