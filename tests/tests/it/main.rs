@@ -3,6 +3,7 @@ mod campaign;
 mod core;
 mod distributed;
 mod docs;
+mod footprint;
 mod fusion;
 mod fuzz;
 mod multihost;
