@@ -271,6 +271,8 @@ pub trait Member {
     fn fitness(&self) -> f64;
     /// Whether the genome maps, with its used codons and depth (0 when invalid).
     fn mapping(&self) -> (bool, usize, usize);
+    /// Its phenotype, when known (a received gene's is not: it is mapped if it wins).
+    fn phenotype(&self) -> Option<&Arc<str>>;
     /// The member as an individual of its own (it may be left empty).
     fn take(&mut self) -> Individual;
 }
@@ -284,6 +286,9 @@ impl Member for Individual {
     }
     fn mapping(&self) -> (bool, usize, usize) {
         (self.valid, self.used_codons, self.depth)
+    }
+    fn phenotype(&self) -> Option<&Arc<str>> {
+        self.phenotype.as_ref()
     }
     fn take(&mut self) -> Individual {
         std::mem::take(self)
@@ -338,6 +343,9 @@ impl Member for Candidate<'_> {
     fn mapping(&self) -> (bool, usize, usize) {
         (self.valid, self.used_codons, self.depth)
     }
+    fn phenotype(&self) -> Option<&Arc<str>> {
+        self.phenotype
+    }
     fn take(&mut self) -> Individual {
         Individual {
             genome: self.shared.map_or_else(|| Arc::from(self.genome), Arc::clone),
@@ -381,6 +389,9 @@ pub struct StepStats {
     pub discarded_pairs: usize,
     /// Whether the winner is a pool member rather than an offspring.
     pub winner_from_pool: bool,
+    /// Whether the winning offspring took its parent's phenotype, deriving exactly like
+    /// it (uncrossed, no mutation picking another alternative), instead of being mapped.
+    pub winner_phenotype_inherited: bool,
 }
 
 /// Pairs drawn per wanted offspring before giving up (only children that map valid
@@ -606,7 +617,9 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
 
 /// Mutate a child within its used codons (its drawn mutations when on the tape) and
 /// map and score the result; a child that maps valid but too deep is mutated again
-/// from scratch (at most [`MAX_REMUTATIONS`] times).
+/// from scratch (at most [`MAX_REMUTATIONS`] times). The flag says that the mutated
+/// child derives exactly as before mutation: on the tape, no mutation picked another
+/// alternative (and it was not mutated again).
 fn mutate_and_score<R: Rng + ?Sized>(
     env: &Env<'_>,
     child: Crossed,
@@ -615,11 +628,12 @@ fn mutate_and_score<R: Rng + ?Sized>(
     tape: &mut Tape,
     mapper: &mut Mapper,
     rng: &mut R,
-) -> (MapStats, f64) {
+) -> (MapStats, f64, bool) {
     let Env { grammar, params, gaps, .. } = *env;
     let Crossed { kid, stats: before, taped } = child;
     let genome = &mut arena[kid.start..kid.start + kid.len];
     let eff = mutation_span(&before, kid.len);
+    let unchanged = matches!(taped, Some((_, None)));
     let (mut st, mut fitness) = match taped {
         Some((d, mark)) => {
             for &(i, new) in drawn {
@@ -644,7 +658,7 @@ fn mutate_and_score<R: Rng + ?Sized>(
         (st, fitness) = mapper.map_scored(grammar, genome, env.limits);
         tries += 1;
     }
-    (st, fitness)
+    (st, fitness, unchanged && tries == 1)
 }
 
 /// [`genetic_step_in`] over a pool of any [`Member`]s (the caller empties it).
@@ -708,7 +722,10 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
     pairs.plan(parents.iter().map(|p| (p.genome().len(), used_span(p))), max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
-    let mut best: Option<(Kid, f64, MapStats)> = None;
+    // The best offspring: where it is, its D and mapping, and the parent it derives
+    // exactly like (uncrossed, no mutation picking another alternative), whose
+    // phenotype is then its own.
+    let mut best: Option<(Kid, f64, MapStats, Option<usize>)> = None;
     let mut made = 0usize;
     if !pairs.viable() {
         return Err(GeError::NoViableOffspring { produced: 0, wanted, attempts: 0, max_genome_length: max_len });
@@ -769,16 +786,16 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
                 (_, Some(c)) => c,
                 (_, None) => crossed(1, arena, tape, mapper, &mut mutations[1], rng),
             };
-            let (st, mut fitness) = mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
+            let (st, mut fitness, unchanged) = mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
             made += 1;
             if !st.valid {
                 stats.invalid_offspring += 1;
                 fitness = f64::NAN;
             }
-            if best.is_none_or(|(_, f, _)| fitness_cmp(fitness, f) == Ordering::Greater) {
-                best = Some((child.kid, fitness, st));
+            if best.is_none_or(|(_, f, _, _)| fitness_cmp(fitness, f) == Ordering::Greater) {
+                best = Some((child.kid, fitness, st, (unchanged && !cross).then_some([i, j][k])));
             }
-            if best.is_some_and(|(_, f, _)| settled(f)) {
+            if best.is_some_and(|(_, f, _, _)| settled(f)) {
                 break 'pairs;
             }
         }
@@ -796,7 +813,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
         let f = match c {
             Cand::Pool(j) => pool[j].fitness(),
             Cand::Kid => match best {
-                Some((_, f, _)) => f,
+                Some((_, f, _, _)) => f,
                 None => continue,
             },
         };
@@ -809,16 +826,26 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             stats.winner_from_pool = true;
             pool[j].take()
         }
-        (Some((Cand::Kid, _)), Some((kid, fitness, st))) => {
+        (Some((Cand::Kid, _)), Some((kid, fitness, st, same_as))) => {
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
-                // Only the winner's phenotype is ever written out.
-                let mut text = String::with_capacity(256);
-                mapper.map_into(grammar, &genome, limits, &mut text);
+                // Only the winner's phenotype is ever written out: its parent's when it
+                // derives like it, else mapped.
+                let phenotype = match same_as.and_then(|p| pool[p].phenotype()) {
+                    Some(known) => {
+                        stats.winner_phenotype_inherited = true;
+                        Arc::clone(known)
+                    }
+                    None => {
+                        let mut text = String::with_capacity(256);
+                        mapper.map_into(grammar, &genome, limits, &mut text);
+                        Arc::from(text)
+                    }
+                };
                 Individual {
                     genome,
                     valid: true,
-                    phenotype: Some(Arc::from(text)),
+                    phenotype: Some(phenotype),
                     used_codons: st.used_codons,
                     depth: st.depth,
                     fitness,
@@ -1203,6 +1230,37 @@ mod tests {
         let p = GeParams { max_genome_length: 50, generation_size: 2, ..Default::default() };
         let e = genetic_step(&g, &mut pool, &p, &mut rng).expect_err("over-long parents");
         assert!(matches!(e, GeError::NoViableOffspring { produced: 0, .. }), "{e:?}");
+    }
+
+    /// A winning offspring that derives like its parent takes the parent's phenotype
+    /// (no mapping); it is the phenotype its own genome maps to, like every winner's.
+    #[test]
+    fn a_winner_deriving_like_its_parent_has_its_own_phenotype() {
+        let p = GeParams::default();
+        for (name, bnf) in [("forge", FORGE), ("sf", SF)] {
+            let g = grammar(bnf);
+            let mut rng = ChaCha8Rng::seed_from_u64(29);
+            let (mut inherited, mut mapped) = (0, 0);
+            for _ in 0..600 {
+                let mut pool = pool_of(&g, &p, &mut rng, 8);
+                pool.iter_mut().for_each(|i| i.fitness = 0.0);
+                let Ok((w, st)) = genetic_step_in(&mut Workspace::default(), &g, &mut pool, &p, &mut rng) else {
+                    continue;
+                };
+                if st.winner_from_pool || !w.valid() {
+                    continue;
+                }
+                if st.winner_phenotype_inherited {
+                    inherited += 1;
+                } else {
+                    mapped += 1;
+                }
+                let again = evaluate(&g, w.genome.clone(), &p);
+                assert_eq!(again.phenotype, w.phenotype, "{name}");
+                assert_eq!((again.used_codons, again.depth, again.fitness), (w.used_codons, w.depth, w.fitness));
+            }
+            assert!(inherited >= 10 && mapped >= 10, "{name}: {inherited} inherited, {mapped} mapped");
+        }
     }
 
     #[test]
