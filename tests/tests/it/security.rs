@@ -164,24 +164,42 @@ pub(crate) fn attack(
     })
 }
 
+/// Lift the run's step-rate limit as the operator (the run waits for the rogue).
+fn release(run: &str, operator: &CommonArgs) {
+    let rt = zenoh_bus::runtime(1).expect("runtime");
+    rt.block_on(async {
+        let session = try_open(operator, Duration::from_secs(20)).await.expect("the operator logs in");
+        let bytes = encode(&Control::StepRate(0.0)).expect("encode");
+        zenoh_bus::put(&session, &keys::ctl(run, "view"), bytes).await.expect("the operator lifts the step rate");
+        let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    });
+}
+
 #[test]
 fn a_rogue_with_valid_credentials_reaches_no_one_and_changes_nothing() {
     let _one_at_a_time = serial();
     // 12 agents in three processes of four; every process reads all keys (no per-cell
     // tokens of its own), so a forged cells token would be new.
-    // Long enough for the rogue (started at step 5) to finish well before the end.
+    // The run goes at 200 steps/s until the rogue (started at step 5) is done, then the
+    // operator lifts the limit: the rogue never meets a finished run, however slowly it
+    // gets its logins on a busy machine. (Without a limit the 30,000 steps took ~7 s,
+    // and one CI run in several lost that race: the rogue's valid login came after
+    // the router had gone.)
     let cfg = config(12, 30_000, 6, Layout::Paper);
     let expected = in_process(&cfg);
     let spec = cfg.clone().validate().expect("valid config");
     let mut opts = options(3, Some(4));
     opts.subscribe = Some("all".into());
+    opts.step_rate = Some(200.0);
     assert_eq!(opts.security, Security::PerRun, "distributed runs are secured by default");
     let own = AgentRange::new(0, 4).expect("range");
     let other = AgentRange::new(4, 4).expect("range");
-    let (tx, rx) = std::sync::mpsc::channel::<(String, CommonArgs, CommonArgs)>();
+    let (tx, rx) = std::sync::mpsc::channel::<(String, CommonArgs, CommonArgs, CommonArgs)>();
     let rogue = std::thread::spawn(move || {
-        let (run, rogue, reader) = rx.recv_timeout(Duration::from_secs(120)).expect("run started");
-        attack(&run, &rogue, &reader, own, other, 20)
+        let (run, rogue, reader, operator) = rx.recv_timeout(Duration::from_secs(120)).expect("run started");
+        let a = attack(&run, &rogue, &reader, own, other, 20);
+        release(&run, &operator);
+        a
     });
     let mut sent = false;
     let mut reps: Vec<NetReport> = Vec::new();
@@ -192,7 +210,8 @@ fn a_rogue_with_valid_credentials_reaches_no_one_and_changes_nothing() {
             sent = true;
             let rogue = swarm.client_args_as(&security::agents_user(own));
             let reader = swarm.client_args_as(security::VIEWER);
-            let _ = tx.send((swarm.run_name().to_string(), rogue, reader));
+            let operator = swarm.client_args_as(security::OPERATOR);
+            let _ = tx.send((swarm.run_name().to_string(), rogue, reader, operator));
         }
         pids = swarm.all_pids();
     })
