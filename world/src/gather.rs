@@ -57,11 +57,12 @@ impl Gather {
     }
 
     /// Open step `step`, awaiting the agents for which `expected(id)` holds. Opened
-    /// before the step's percepts go out: fast answers must find it open.
+    /// before the step's percepts go out: fast answers must find it open. The counters
+    /// are not reset here ([`Gather::close`] took the last step's): hostile batches that
+    /// came between the two steps count in this one.
     pub fn begin(&mut self, step: u64, expected: impl Fn(usize) -> bool) {
         self.step = step;
         self.pending = 0;
-        self.counters = NetCounters::default();
         for i in 0..self.n {
             self.intents[i] = None;
             self.answered[i] = false;
@@ -223,6 +224,19 @@ mod tests {
         assert!(!g.on_action(&key(0, 1), &batch(6, vec![intent(0, 6)], vec![])));
         assert_eq!(g.counters.hostile, 1, "a future step is hostile");
         assert_eq!(g.pending(), 2);
+    }
+
+    /// What arrives after a step closed and before the next begins (a paced run waits
+    /// there) counts in the next step, not nowhere.
+    #[test]
+    fn hostile_batches_between_steps_count_in_the_next() {
+        let mut g = Gather::new(RUN, 2);
+        g.begin(1, |_| true);
+        assert_eq!(g.close().counters.hostile, 0);
+        g.on_action(&key(0, 1), b"\x01garbage");
+        g.on_action(&key(0, 1), &batch(7, vec![intent(0, 7)], vec![]));
+        g.begin(2, |_| true);
+        assert_eq!(g.close().counters.hostile, 2);
     }
 
     #[test]

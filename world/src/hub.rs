@@ -159,11 +159,12 @@ impl GeneHub {
 
     /// Open step `step`: `cells` are the shared cells with the processes that write and
     /// read each ([`shared_cells`]); `hosting` the processes served with [`HostGenes`].
+    /// The hostile count is not reset here ([`GeneHub::close`] took the last step's):
+    /// what came between the two steps counts in this one.
     pub fn begin(&mut self, step: u64, cells: CellMap<CellPeers>, per_cell: bool, hosting: &[AgentRange]) {
         self.step = step;
         self.begun = step;
         self.per_cell = per_cell;
-        self.hostile = 0;
         self.hosts.clear();
         self.packs.clear();
         self.cells = cells
@@ -524,6 +525,19 @@ mod tests {
         hub.on_bundle(&key(b), b"\x08junk");
         hub.on_bundle("geese/t/agent/zz/genes", &bundle(3, &[(5, vec![gene(2, 3)])]));
         assert_eq!(hub.close(), 5);
+    }
+
+    /// A hostile bundle between two steps (a paced run waits there) counts in the next
+    /// step's report.
+    #[test]
+    fn hostile_bundles_between_steps_count_in_the_next() {
+        let (a, b) = (r(0, 2), r(2, 2));
+        let mut hub = GeneHub::new(RUN, geom());
+        open(&mut hub, 3, a, b);
+        assert_eq!(hub.close(), 0);
+        hub.on_bundle(&key(b), b"\x08junk");
+        open(&mut hub, 4, a, b);
+        assert_eq!(hub.close(), 1);
     }
 
     #[test]

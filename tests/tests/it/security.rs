@@ -228,6 +228,7 @@ fn a_rogue_with_valid_credentials_reaches_no_one_and_changes_nothing() {
     // The world counted the control's malformed bundles (at most one a step: two in one
     // step count once), and nothing of the 13 forged kinds a round.
     let hostile: u32 = reps.iter().map(|r| r.net.hostile).sum();
+    eprintln!("hostile messages counted at the world: {hostile}");
     assert!((1..=a.own).contains(&(hostile as u64)), "{hostile} hostile messages at the world, {} controls", a.own);
     let got = step_reports(&reps);
     let first_diff = expected.iter().zip(&got).position(|(a, b)| a != b);
