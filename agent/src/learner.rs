@@ -374,18 +374,26 @@ impl LearnerConfig {
     }
 }
 
-/// Set of visited cells (a bitset with a count).
+/// Set of visited cells (a bitset with a count). The last cell inserted is kept
+/// beside it: an agent stays in its cell for many steps, and with 10,000 agents each
+/// bitset word it read at every step was a likely cache miss (`CellSet::insert` was 3 %
+/// of the samples of a sparse 10,000-agent run).
 #[derive(Clone, Debug)]
 struct CellSet {
     bits: Vec<u64>,
     set: Vec<u32>,
+    last: u32,
 }
 
 impl CellSet {
     fn new(cells: usize) -> Self {
-        CellSet { bits: vec![0; cells.div_ceil(64)], set: Vec::new() }
+        CellSet { bits: vec![0; cells.div_ceil(64)], set: Vec::new(), last: u32::MAX }
     }
     fn insert(&mut self, c: u32) {
+        if c == self.last {
+            return;
+        }
+        self.last = c;
         let (w, b) = ((c / 64) as usize, c % 64);
         if let Some(word) = self.bits.get_mut(w) {
             if *word & (1 << b) == 0 {
@@ -402,6 +410,7 @@ impl CellSet {
             self.bits[(c / 64) as usize] = 0;
         }
         self.set.clear();
+        self.last = u32::MAX;
     }
 }
 
