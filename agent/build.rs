@@ -6,8 +6,9 @@
 //!   executes (listed by `scripts/agent-link-order.sh`) placed together at the start of
 //!   the text, so the ~2.5 MiB they take are all the code a process maps, instead of
 //!   ~8.5 MiB of pages they were scattered over. Symbols the binary no longer has are
-//!   skipped (`--no-warn-symbol-ordering`); the test `agent_link_order` fails when too
-//!   many are gone.
+//!   skipped (`--no-warn-symbol-ordering`); the test
+//!   `footprint::agent_link_order_is_current_and_clusters_the_agents_code` fails when
+//!   too many are gone.
 //! - `-z pack-relative-relocs` (RELR, glibc ≥ 2.36): the position-independent binary's
 //!   ~31,000 relative relocations take 9 KiB instead of 730 KiB that the loader reads
 //!   at every start.

@@ -5,7 +5,7 @@
 # code instead of ~8.5 MiB scattered over 12 MiB of text (the kernel maps the 16 pages
 # around every page fault), and its resident memory drops from ~14 to ~7.5 MiB
 # (issue 29; docs/PERFORMANCE.md). Run it after a dependency update or a large change
-# to the agent's code path: `cargo test` fails (`agent_link_order`) once too few of
+# to the agent's code path: `cargo test` fails (`footprint::agent_link_order_…`) once too few of
 # the listed symbols are left in the binary.
 #
 #   scripts/agent-link-order.sh     (needs valgrind and python3; builds the release bins)

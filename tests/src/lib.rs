@@ -2,6 +2,17 @@
 use std::path::PathBuf;
 use std::process::Command;
 
+/// The workspace root: the parent of the test's manifest dir. Taken from the
+/// environment cargo gives the running test, not baked in at compile time: a build
+/// cache shared between checkouts (CI reuses one target dir) may hold this crate
+/// compiled in another checkout, whose path can be gone or hold other sources.
+pub fn repo_root() -> PathBuf {
+    std::env::var_os("CARGO_MANIFEST_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")))
+        .join("..")
+}
+
 /// Path of a workspace binary built in the same profile as this test, building it first
 /// if needed (`cargo test` only builds a package's binaries for that package's own
 /// integration tests).
@@ -17,14 +28,7 @@ pub fn bin_path(package: &str, bin: &str) -> PathBuf {
     if release {
         cmd.arg("--release");
     }
-    // The workspace root is the parent of the test's manifest dir. Taken from the
-    // environment cargo gives the running test, not baked in at compile time: a build
-    // cache shared between checkouts (CI reuses one target dir) may hold this crate
-    // compiled in another checkout, whose path can be gone or hold other sources.
-    let manifest_dir = std::env::var_os("CARGO_MANIFEST_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")));
-    cmd.current_dir(manifest_dir.join(".."));
+    cmd.current_dir(repo_root());
     // Not the variables cargo sets for running this test: some build scripts (ring's)
     // track e.g. CARGO_MANIFEST_DIR, and a value different from the outer build's makes
     // them, and everything above them, rebuild every time.

@@ -1,16 +1,9 @@
 //! The documents a reader acts on: every command `docs/REPRODUCTION.md` gives parses, the
 //! files it reads exist, and every figure and link of the report (and every figure path
 //! named in the other documents) is there.
-use std::path::{Path, PathBuf};
+use geese_tests::repo_root;
+use std::path::Path;
 use std::process::Command;
-
-fn repo_root() -> PathBuf {
-    // As `geese_tests::bin_path`: from the environment cargo gives the running test.
-    std::env::var_os("CARGO_MANIFEST_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")))
-        .join("..")
-}
 
 fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))

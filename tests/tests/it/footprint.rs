@@ -31,7 +31,7 @@ fn agent_link_order_is_current_and_clusters_the_agents_code() {
         eprintln!("skipped: geese-agent is linked without an order on this target");
         return;
     }
-    let order_file = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../agent/geese-agent.order");
+    let order_file = geese_tests::repo_root().join("agent/geese-agent.order");
     let order = std::fs::read_to_string(&order_file).expect("read agent/geese-agent.order");
     let names: Vec<&str> = order.lines().filter(|l| !l.is_empty()).collect();
     assert!(names.len() > 1000, "{} lists only {} functions", order_file.display(), names.len());
