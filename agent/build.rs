@@ -13,6 +13,11 @@
 //!   ~31,000 relative relocations take 9 KiB instead of 730 KiB that the loader reads
 //!   at every start.
 //!
+//! The order file is linked from a copy in `OUT_DIR`: cargo reuses a build script's
+//! output while the files it watches are older than its last run, also when the last
+//! run was another checkout's sharing the target directory (as CI's clones do), and a
+//! path into that checkout would then be gone.
+//!
 //! Both are options of LLD, the linker Rust uses by default on x86_64 Linux (GNU); on
 //! other targets the binary is linked as cargo does by default. `GEESE_PLAIN_LINK=1`
 //! turns them off, for a toolchain configured to link with another linker.
@@ -30,6 +35,11 @@ fn main() {
         return;
     }
     let order = std::path::Path::new(&cfg("CARGO_MANIFEST_DIR")).join("geese-agent.order");
+    let copy = std::path::Path::new(&cfg("OUT_DIR")).join("geese-agent.order");
+    if let Err(e) = std::fs::copy(&order, &copy) {
+        panic!("cannot copy the link order {} to {}: {e}", order.display(), copy.display());
+    }
+    let order = copy;
     println!("cargo:rustc-link-arg-bin=geese-agent=-Wl,--symbol-ordering-file={}", order.display());
     println!("cargo:rustc-link-arg-bin=geese-agent=-Wl,--no-warn-symbol-ordering");
     println!("cargo:rustc-link-arg-bin=geese-agent=-Wl,-z,pack-relative-relocs");
