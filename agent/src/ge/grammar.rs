@@ -133,7 +133,30 @@ pub struct Grammar {
     compiled: Compiled,
     /// The highest D of a valid individual, per depth limit (`ge::ceiling`).
     ceilings: Ceilings,
+    /// Which parse this is, for caches of what its derivations write.
+    uid: Uid,
 }
+
+/// A number no other grammar parsed in this process has (its clones share it, being
+/// the same grammar): caches that hold what a grammar's derivations write (run ids,
+/// `ge::operators`) key by it, as one process may hold several grammars (Multi-GEESE).
+/// Not part of a grammar's value: grammars compare equal by their rules.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Uid(pub(crate) u64);
+
+impl Uid {
+    fn next() -> Uid {
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        Uid(NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
+    }
+}
+
+impl PartialEq for Uid {
+    fn eq(&self, _: &Uid) -> bool {
+        true
+    }
+}
+impl Eq for Uid {}
 
 /// Why a grammar text (or file) was rejected. Lines and columns are 1-based.
 #[derive(Debug, thiserror::Error)]
@@ -296,6 +319,7 @@ impl Grammar {
             max_alternatives: 0,
             compiled: Compiled::default(),
             ceilings: Ceilings::default(),
+            uid: Uid::next(),
         };
         g.precompute()?;
         g.compiled = Compiled::build(&g);
@@ -386,6 +410,10 @@ impl Grammar {
     }
     pub(crate) fn compiled(&self) -> &Compiled {
         &self.compiled
+    }
+    /// This parse's [`Uid`].
+    pub(crate) fn uid(&self) -> Uid {
+        self.uid
     }
     /// The highest diversity D a valid individual can score under the depth limit
     /// `max_tree_depth` (0 = none), when the grammar allows finding it (`ge::ceiling`).

@@ -412,9 +412,24 @@ struct Kid {
 struct Crossed {
     kid: Kid,
     stats: MapStats,
-    /// On the tape (when the grammar allows tapes): its D and the state at its first
-    /// codon that its mutations change; the mutations are drawn.
-    taped: Option<(f64, Option<Mark>)>,
+    /// On the tape (when the grammar allows tapes): its D, the state at its first
+    /// codon that its mutations change (the mutations are drawn), and its last run.
+    taped: Option<(f64, Option<Mark>, u32)>,
+}
+
+/// The best offspring of a genetic step so far.
+#[derive(Debug, Clone, Copy)]
+struct Best {
+    /// Where it is in the arena.
+    kid: Kid,
+    /// Its D (NaN when invalid).
+    fitness: f64,
+    stats: MapStats,
+    /// The parent it derives exactly like (uncrossed, no mutation picking another
+    /// alternative), whose phenotype is then its own.
+    same_as: Option<usize>,
+    /// The last run of terminals of its mapping on the tape.
+    last_run: Option<u32>,
 }
 
 /// The codons a child's mutations range over (§5.6): its used codons when its mapping
@@ -512,6 +527,48 @@ pub struct Workspace {
     /// Make all offspring even once the winner is settled (for statistics over
     /// offspring; the winner's law is the same).
     every_offspring: bool,
+    /// Winners' phenotypes by the runs of terminals that make them.
+    phenotypes: Phenotypes,
+}
+
+/// The phenotypes of recent winners, by the runs of terminals (ids of
+/// `Compiled::runs`) whose texts make them: a run adopts a few thousand distinct
+/// phenotypes over hundreds of thousands of genetic steps, so a winner's phenotype is
+/// nearly always one written before, and shared rather than written again. Run ids are
+/// a grammar's own, and a process may evolve with several grammars (Multi-GEESE), so
+/// the key is the grammar's [`Uid`](super::grammar::Uid) followed by the runs.
+#[derive(Debug, Default)]
+struct Phenotypes {
+    by_runs: std::collections::HashMap<Box<[u32]>, Arc<str>, foldhash::fast::FixedState>,
+    key: Vec<u32>,
+}
+
+/// Most phenotypes a [`Phenotypes`] keeps (it is emptied when full).
+const PHENOTYPES_KEPT: usize = 4096;
+
+impl Phenotypes {
+    /// The phenotype written by the runs of `grammar` that `runs` appends to a
+    /// buffer, last run first.
+    fn text(&mut self, grammar: &Grammar, runs: impl FnOnce(&mut Vec<u32>)) -> Arc<str> {
+        let uid = grammar.uid().0;
+        self.key.clear();
+        self.key.extend_from_slice(&[uid as u32, (uid >> 32) as u32]);
+        runs(&mut self.key);
+        if let Some(p) = self.by_runs.get(self.key.as_slice()) {
+            return Arc::clone(p);
+        }
+        let compiled = grammar.compiled();
+        let mut text = String::with_capacity(256);
+        for &r in self.key[2..].iter().rev() {
+            text.push_str(&compiled.runs[r as usize].text);
+        }
+        let text: Arc<str> = Arc::from(text);
+        if self.by_runs.len() >= PHENOTYPES_KEPT {
+            self.by_runs.clear();
+        }
+        self.by_runs.insert(self.key.as_slice().into(), Arc::clone(&text));
+        text
+    }
 }
 
 impl Workspace {
@@ -612,14 +669,15 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
         mutations.push((next as u32, rng.random_range(0..=codon_size)));
         next = gaps.next_from(rng, next + 1);
     }
-    Crossed { kid, stats: m.stats, taped: Some((m.d, m.mark)) }
+    Crossed { kid, stats: m.stats, taped: Some((m.d, m.mark, m.runs)) }
 }
 
 /// Mutate a child within its used codons (its drawn mutations when on the tape) and
 /// map and score the result; a child that maps valid but too deep is mutated again
 /// from scratch (at most [`MAX_REMUTATIONS`] times). The flag says that the mutated
 /// child derives exactly as before mutation: on the tape, no mutation picked another
-/// alternative (and it was not mutated again).
+/// alternative (and it was not mutated again). The last value is the last run of
+/// terminals of the final mapping when it was made on the tape ([`Tape::phenotype_runs`]).
 fn mutate_and_score<R: Rng + ?Sized>(
     env: &Env<'_>,
     child: Crossed,
@@ -628,37 +686,39 @@ fn mutate_and_score<R: Rng + ?Sized>(
     tape: &mut Tape,
     mapper: &mut Mapper,
     rng: &mut R,
-) -> (MapStats, f64, bool) {
+) -> (MapStats, f64, bool, Option<u32>) {
     let Env { grammar, params, gaps, .. } = *env;
     let Crossed { kid, stats: before, taped } = child;
     let genome = &mut arena[kid.start..kid.start + kid.len];
     let eff = mutation_span(&before, kid.len);
-    let unchanged = matches!(taped, Some((_, None)));
-    let (mut st, mut fitness) = match taped {
-        Some((d, mark)) => {
+    let unchanged = matches!(taped, Some((_, None, _)));
+    let (mut st, mut fitness, mut runs) = match taped {
+        Some((d, mark, runs)) => {
             for &(i, new) in drawn {
                 genome[i as usize] = new;
             }
             match mark {
-                None => (before, d),
+                None => (before, d, Some(runs)),
                 Some(m) => {
                     let r = tape.map(env.compiled, env.start_rule, genome, env.limits, Origin::Mark(m), no_change);
-                    (r.stats, r.d)
+                    (r.stats, r.d, Some(r.runs))
                 }
             }
         }
         None => {
             gaps.for_each(rng, eff, |rng, i| genome[i] = rng.random_range(0..=params.codon_size));
-            mapper.map_scored(grammar, genome, env.limits)
+            let (st, d) = mapper.map_scored(grammar, genome, env.limits);
+            (st, d, None)
         }
     };
     let mut tries = 1;
     while too_deep(&st, params.max_tree_depth) && tries < MAX_REMUTATIONS && eff > 0 {
         gaps.for_each(rng, eff, |rng, i| genome[i] = rng.random_range(0..=params.codon_size));
         (st, fitness) = mapper.map_scored(grammar, genome, env.limits);
+        runs = None;
         tries += 1;
     }
-    (st, fitness, unchanged && tries == 1)
+    (st, fitness, unchanged && tries == 1, runs)
 }
 
 /// [`genetic_step_in`] over a pool of any [`Member`]s (the caller empties it).
@@ -687,7 +747,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, tape, mutations, pairs, every_offspring } = ws;
+    let Workspace { mapper, arena, tape, mutations, pairs, every_offspring, phenotypes } = ws;
     arena.clear();
     tape.clear();
     // Offspring are mapped on the tape (`ge::tape`) when the grammar is scored from its
@@ -722,10 +782,8 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
     pairs.plan(parents.iter().map(|p| (p.genome().len(), used_span(p))), max_len, params.crossover_prob);
     let max_attempts = wanted.saturating_mul(ATTEMPTS_PER_OFFSPRING);
     let mut attempts = 0usize;
-    // The best offspring: where it is, its D and mapping, and the parent it derives
-    // exactly like (uncrossed, no mutation picking another alternative), whose
-    // phenotype is then its own.
-    let mut best: Option<(Kid, f64, MapStats, Option<usize>)> = None;
+    // The best offspring so far.
+    let mut best: Option<Best> = None;
     let mut made = 0usize;
     if !pairs.viable() {
         return Err(GeError::NoViableOffspring { produced: 0, wanted, attempts: 0, max_genome_length: max_len });
@@ -786,16 +844,18 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
                 (_, Some(c)) => c,
                 (_, None) => crossed(1, arena, tape, mapper, &mut mutations[1], rng),
             };
-            let (st, mut fitness, unchanged) = mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
+            let (st, mut fitness, unchanged, last_run) =
+                mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
             made += 1;
             if !st.valid {
                 stats.invalid_offspring += 1;
                 fitness = f64::NAN;
             }
-            if best.is_none_or(|(_, f, _, _)| fitness_cmp(fitness, f) == Ordering::Greater) {
-                best = Some((child.kid, fitness, st, (unchanged && !cross).then_some([i, j][k])));
+            if best.is_none_or(|b| fitness_cmp(fitness, b.fitness) == Ordering::Greater) {
+                let same_as = (unchanged && !cross).then_some([i, j][k]);
+                best = Some(Best { kid: child.kid, fitness, stats: st, same_as, last_run });
             }
-            if best.is_some_and(|(_, f, _, _)| settled(f)) {
+            if best.is_some_and(|b| settled(b.fitness)) {
                 break 'pairs;
             }
         }
@@ -813,7 +873,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
         let f = match c {
             Cand::Pool(j) => pool[j].fitness(),
             Cand::Kid => match best {
-                Some((_, f, _, _)) => f,
+                Some(b) => b.fitness,
                 None => continue,
             },
         };
@@ -826,17 +886,19 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             stats.winner_from_pool = true;
             pool[j].take()
         }
-        (Some((Cand::Kid, _)), Some((kid, fitness, st, same_as))) => {
+        (Some((Cand::Kid, _)), Some(Best { kid, fitness, stats: st, same_as, last_run })) => {
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
                 // Only the winner's phenotype is ever written out: its parent's when it
-                // derives like it, else mapped.
-                let phenotype = match same_as.and_then(|p| pool[p].phenotype()) {
-                    Some(known) => {
+                // derives like it, else the text of the runs its mapping on the tape
+                // wrote (one held already when a winner wrote the same runs), else mapped.
+                let phenotype = match (same_as.and_then(|p| pool[p].phenotype()), last_run) {
+                    (Some(known), _) => {
                         stats.winner_phenotype_inherited = true;
                         Arc::clone(known)
                     }
-                    None => {
+                    (None, Some(last)) => phenotypes.text(grammar, |key| tape.phenotype_runs(last, key)),
+                    (None, None) => {
                         let mut text = String::with_capacity(256);
                         mapper.map_into(grammar, &genome, limits, &mut text);
                         Arc::from(text)
@@ -1237,30 +1299,53 @@ mod tests {
     #[test]
     fn a_winner_deriving_like_its_parent_has_its_own_phenotype() {
         let p = GeParams::default();
-        for (name, bnf) in [("forge", FORGE), ("sf", SF)] {
-            let g = grammar(bnf);
-            let mut rng = ChaCha8Rng::seed_from_u64(29);
-            let (mut inherited, mut mapped) = (0, 0);
-            for _ in 0..600 {
-                let mut pool = pool_of(&g, &p, &mut rng, 8);
-                pool.iter_mut().for_each(|i| i.fitness = 0.0);
-                let Ok((w, st)) = genetic_step_in(&mut Workspace::default(), &g, &mut pool, &p, &mut rng) else {
-                    continue;
-                };
-                if st.winner_from_pool || !w.valid() {
-                    continue;
-                }
-                if st.winner_phenotype_inherited {
-                    inherited += 1;
-                } else {
-                    mapped += 1;
-                }
-                let again = evaluate(&g, w.genome.clone(), &p);
-                assert_eq!(again.phenotype, w.phenotype, "{name}");
-                assert_eq!((again.used_codons, again.depth, again.fitness), (w.used_codons, w.depth, w.fitness));
+        let grammars = [("forge", grammar(FORGE)), ("sf", grammar(SF))];
+        let mut rng = ChaCha8Rng::seed_from_u64(29);
+        let (mut inherited, mut mapped) = ([0; 2], [0; 2]);
+        // One workspace for all steps of both grammars, interleaved (as Multi-GEESE's
+        // learners share one): a winner's phenotype is written from its runs the first
+        // time and taken from the workspace when the same grammar's runs repeat.
+        let mut ws = Workspace::default();
+        for step in 0..1200 {
+            let k = step % 2;
+            let (name, g) = &grammars[k];
+            let mut pool = pool_of(g, &p, &mut rng, 8);
+            pool.iter_mut().for_each(|i| i.fitness = 0.0);
+            let Ok((w, st)) = genetic_step_in(&mut ws, g, &mut pool, &p, &mut rng) else {
+                continue;
+            };
+            if st.winner_from_pool || !w.valid() {
+                continue;
             }
+            if st.winner_phenotype_inherited {
+                inherited[k] += 1;
+            } else {
+                mapped[k] += 1;
+            }
+            let again = evaluate(g, w.genome.clone(), &p);
+            assert_eq!(again.phenotype, w.phenotype, "{name}");
+            assert_eq!((again.used_codons, again.depth, again.fitness), (w.used_codons, w.depth, w.fitness));
+        }
+        for (k, (name, _)) in grammars.iter().enumerate() {
+            let (inherited, mapped) = (inherited[k], mapped[k]);
             assert!(inherited >= 10 && mapped >= 10, "{name}: {inherited} inherited, {mapped} mapped");
         }
+        let known = ws.phenotypes.by_runs.len();
+        let mapped = mapped[0] + mapped[1];
+        assert!(known >= 10 && known < mapped, "{known} phenotypes kept for {mapped} mapped winners");
+    }
+
+    #[test]
+    fn phenotypes_of_two_grammars_with_the_same_run_ids_are_kept_apart() {
+        let (a, b) = (grammar("<s> ::= left | right\n"), grammar("<s> ::= up | down\n"));
+        let mut kept = Phenotypes::default();
+        for _ in 0..2 {
+            for (g, text) in [(&a, "left"), (&b, "up"), (&a.clone(), "left")] {
+                let run = g.compiled().runs.iter().position(|r| &*r.text == text).expect("a run per terminal");
+                assert_eq!(&*kept.text(g, |key| key.push(run as u32)), text);
+            }
+        }
+        assert_eq!(kept.by_runs.len(), 2, "a clone of a grammar is the same grammar");
     }
 
     #[test]

@@ -46,6 +46,8 @@ struct Cell {
 struct Snap {
     /// Top of the stack: the non-terminal about to read the codon.
     head: u32,
+    /// The last run of terminals written so far (see [`Tape::runs`]).
+    runs: u32,
     max_depth: u32,
     need: u32,
     scan: DiversityScan,
@@ -66,6 +68,8 @@ pub(crate) struct Mapped {
     pub(crate) d: f64,
     /// The state at the first codon the hook reported as changed.
     pub(crate) mark: Option<Mark>,
+    /// The last run of terminals the mapping wrote ([`Tape::phenotype_runs`]).
+    pub(crate) runs: u32,
 }
 
 /// Where a mapping starts: from scratch, or from a kept state (of a genome that agrees
@@ -81,6 +85,18 @@ pub(crate) enum Origin {
 pub(crate) struct Tape {
     cells: Vec<Cell>,
     snaps: Vec<Snap>,
+    /// The runs of terminals the mappings wrote, each linked to the run written before
+    /// it (a persistent list, as the stack): a mapping's phenotype is the text of its
+    /// runs in order, so the winner's phenotype is known without mapping it again.
+    runs: Vec<RunLink>,
+}
+
+/// A run of terminals a mapping wrote (a run id of `Compiled::runs`), and the run
+/// written before it.
+#[derive(Debug, Clone, Copy)]
+struct RunLink {
+    run: u32,
+    before: u32,
 }
 
 /// A hook that never reports a change (for mappings that keep nothing).
@@ -93,6 +109,20 @@ impl Tape {
     pub(crate) fn clear(&mut self) {
         self.cells.clear();
         self.snaps.clear();
+        self.runs.clear();
+    }
+
+    /// The run ids of the phenotype of a valid mapping whose last run is `last`
+    /// ([`Mapped::runs`]), last first, appended to `out`. The phenotype is the
+    /// concatenation of their texts in reverse: the mapper writes exactly the runs the
+    /// tape feeds to the diversity scan, at the same points.
+    pub(crate) fn phenotype_runs(&self, last: u32, out: &mut Vec<u32>) {
+        let mut at = last;
+        while at != NIL {
+            let link = self.runs[at as usize];
+            out.push(link.run);
+            at = link.before;
+        }
     }
 
     /// Map `genome` and score it, starting from `from`. `changed(i, codon, alts,
@@ -116,19 +146,19 @@ impl Tape {
     ) -> Mapped {
         let n = genome.len();
         let mut mark = None;
-        let (mut head, mut used, mut max_depth, mut need, mut scan) = match from {
+        let (mut head, mut used, mut max_depth, mut need, mut scan, mut runs) = match from {
             Origin::Start => {
                 self.cells.push(Cell { entry: pack_symbol(Symbol::NonTerminal(start)) | (1 << 32), below: NIL });
                 let head = self.cells.len() as u32 - 1;
-                (head, 0, 1, c.rules[start as usize].min_codons as usize, DiversityScan::default())
+                (head, 0, 1, c.rules[start as usize].min_codons as usize, DiversityScan::default(), NIL)
             }
             Origin::Mark(m) => {
                 let s = self.snaps[m.snap as usize];
-                (s.head, m.at as usize, s.max_depth as usize, s.need as usize, s.scan)
+                (s.head, m.at as usize, s.max_depth as usize, s.need as usize, s.scan, s.runs)
             }
         };
         if n == 0 {
-            return Mapped { stats: EMPTY_GENOME, d: f64::NAN, mark };
+            return Mapped { stats: EMPTY_GENOME, d: f64::NAN, mark, runs: NIL };
         }
         let depth_limit = limits.depth_cap();
         // A resumed mapping of a shorter genome may already have too few codons left.
@@ -148,6 +178,8 @@ impl Tape {
                     break;
                 }
                 scan.feed_run(&run.toks, run.effect.as_ref());
+                self.runs.push(RunLink { run: code, before: runs });
+                runs = self.runs.len() as u32 - 1;
                 head = below;
                 continue;
             }
@@ -160,7 +192,7 @@ impl Tape {
             let nalts = rule.alts.len() as u32;
             let codon = genome[used];
             if changed(used, codon, nalts, rule.magic) && mark.is_none() {
-                self.snaps.push(Snap { head, max_depth: depth_before as u32, need: need as u32, scan });
+                self.snaps.push(Snap { head, runs, max_depth: depth_before as u32, need: need as u32, scan });
                 mark = Some(Mark { at: used as u32, snap: self.snaps.len() as u32 - 1 });
             }
             let alt = &rule.alts[fast_mod(codon, rule.magic, nalts) as usize];
@@ -181,6 +213,8 @@ impl Tape {
                 }
                 max_depth = max_depth.max(d + 1);
                 scan.feed_run(&run.toks, run.effect.as_ref());
+                self.runs.push(RunLink { run: lead, before: runs });
+                runs = self.runs.len() as u32 - 1;
             }
             for &x in alt.items_rev.iter() {
                 self.cells.push(Cell { entry: x | child_depth, below: head });
@@ -190,7 +224,7 @@ impl Tape {
         let valid = valid_so_far && head == NIL;
         let stats = MapStats { valid, used_codons: used, depth: max_depth };
         let d = if valid { scan.finish() } else { f64::NAN };
-        Mapped { stats, d, mark }
+        Mapped { stats, d, mark, runs }
     }
 }
 
