@@ -16,10 +16,13 @@
 //! - `ceiling`: the highest D a grammar's valid individuals can score.
 //! - `crossover`: the genetic step's crossover pairs, drawn from the accepted ones.
 //! - `tape`: mappings that keep the state at a child's first mutated codon, to resume from.
+//! - `derivations`: recent parents' mappings, so that uncrossed children are not mapped
+//!   again.
 
 mod ceiling;
 mod compiled;
 mod crossover;
+mod derivations;
 pub mod diversity;
 pub mod grammar;
 pub mod init;

@@ -26,6 +26,7 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use super::crossover::{Draw, PairSampler};
+use super::derivations::{self, Derivation, Derivations};
 use super::diversity::diversity;
 use super::grammar::{fast_mod, Grammar};
 use super::init::uniform_tree;
@@ -273,6 +274,8 @@ pub trait Member {
     fn mapping(&self) -> (bool, usize, usize);
     /// Its phenotype, when known (a received gene's is not: it is mapped if it wins).
     fn phenotype(&self) -> Option<&Arc<str>>;
+    /// The codons' shared allocation, if they have one (`ge::derivations` keys by it).
+    fn shared(&self) -> Option<&Arc<[u32]>>;
     /// The member as an individual of its own (it may be left empty).
     fn take(&mut self) -> Individual;
 }
@@ -289,6 +292,9 @@ impl Member for Individual {
     }
     fn phenotype(&self) -> Option<&Arc<str>> {
         self.phenotype.as_ref()
+    }
+    fn shared(&self) -> Option<&Arc<[u32]>> {
+        Some(&self.genome)
     }
     fn take(&mut self) -> Individual {
         std::mem::take(self)
@@ -345,6 +351,9 @@ impl Member for Candidate<'_> {
     }
     fn phenotype(&self) -> Option<&Arc<str>> {
         self.phenotype
+    }
+    fn shared(&self) -> Option<&Arc<[u32]>> {
+        self.shared
     }
     fn take(&mut self) -> Individual {
         Individual {
@@ -412,9 +421,32 @@ struct Kid {
 struct Crossed {
     kid: Kid,
     stats: MapStats,
-    /// On the tape (when the grammar allows tapes): its D, the state at its first
-    /// codon that its mutations change (the mutations are drawn), and its last run.
-    taped: Option<(f64, Option<Mark>, u32)>,
+    /// On the tape (when the grammar allows tapes); the mutations are drawn.
+    taped: Option<Taped>,
+}
+
+/// A child mapped before mutation on the tape, or known from its parent's derivation.
+#[derive(Debug, Clone, Copy)]
+struct Taped {
+    /// D before mutation.
+    d: f64,
+    /// How the mutated child is mapped.
+    resume: Resume,
+    /// The last run of terminals of the mapping, when made on this step's tape.
+    runs: Option<u32>,
+    /// The key of the parent's kept derivation ([`Derivations`]) it was read from.
+    known: Option<usize>,
+}
+
+/// How a mutated child is mapped.
+#[derive(Debug, Clone, Copy)]
+enum Resume {
+    /// No mutation picks another alternative: it derives as before mutation.
+    Unchanged,
+    /// From the state kept at its first codon whose mutation picks another alternative.
+    Mark(Mark),
+    /// From its first codon (its mapping before mutation was not made).
+    Start,
 }
 
 /// The best offspring of a genetic step so far.
@@ -430,6 +462,8 @@ struct Best {
     same_as: Option<usize>,
     /// The last run of terminals of its mapping on the tape.
     last_run: Option<u32>,
+    /// With `same_as`: the key of the parent's kept derivation it was read from.
+    known: Option<usize>,
 }
 
 /// The codons a child's mutations range over (§5.6): its used codons when its mapping
@@ -529,6 +563,8 @@ pub struct Workspace {
     every_offspring: bool,
     /// Winners' phenotypes by the runs of terminals that make them.
     phenotypes: Phenotypes,
+    /// Recent parents' derivations, for their uncrossed children.
+    derivations: Derivations,
 }
 
 /// The phenotypes of recent winners, by the runs of terminals (ids of
@@ -641,6 +677,7 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
     genome: &[u32],
     tape: &mut Tape,
     mapper: &mut Mapper,
+    derivations: &mut Derivations,
     mutations: &mut Vec<(u32, u32)>,
     rng: &mut R,
 ) -> Crossed {
@@ -654,8 +691,40 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
     let (gaps, codon_size) = (env.gaps, env.params.codon_size);
     mutations.clear();
     let mut next = gaps.next_from(rng, 0);
+    // An uncrossed child of a parent whose derivation is kept: the mapping's draws,
+    // made from the kept alternatives per codon, in the same order.
+    let shared = if cross { None } else { parent.shared() };
+    if let Some(known) = shared.and_then(|g| derivations.get(g, env.grammar.uid().0, env.limits)) {
+        let mut changed = false;
+        while next < known.stats.used_codons {
+            let i = next;
+            let new = rng.random_range(0..=codon_size);
+            mutations.push((i as u32, new));
+            next = gaps.next_from(rng, i + 1);
+            let alts = u32::from(known.alts[i]);
+            changed |= alts > 1 && genome[i] % alts != new % alts;
+        }
+        let eff = mutation_span(&known.stats, genome.len());
+        while next < eff {
+            mutations.push((next as u32, rng.random_range(0..=codon_size)));
+            next = gaps.next_from(rng, next + 1);
+        }
+        let resume = if changed { Resume::Start } else { Resume::Unchanged };
+        let key = shared.map(derivations::key);
+        return Crossed { kid, stats: known.stats, taped: Some(Taped { d: known.d, resume, runs: None, known: key }) };
+    }
+    // Otherwise mapped, and its parent's derivation kept when it has a shared genome.
+    let recording = &mut derivations.recording;
+    recording.clear();
+    let mut fits = true;
     let m: Mapped =
         tape.map(env.compiled, env.start_rule, genome, env.limits, Origin::Start, |i, codon, alts, magic| {
+            if shared.is_some() {
+                match u8::try_from(alts) {
+                    Ok(a) => recording.push(a),
+                    Err(_) => fits = false,
+                }
+            }
             if i != next {
                 return false;
             }
@@ -669,7 +738,11 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
         mutations.push((next as u32, rng.random_range(0..=codon_size)));
         next = gaps.next_from(rng, next + 1);
     }
-    Crossed { kid, stats: m.stats, taped: Some((m.d, m.mark, m.runs)) }
+    if let (Some(g), true) = (shared, fits && m.stats.valid) {
+        derivations.keep(g, env.grammar.uid().0, env.limits, m.stats, m.d);
+    }
+    let resume = m.mark.map_or(Resume::Unchanged, Resume::Mark);
+    Crossed { kid, stats: m.stats, taped: Some(Taped { d: m.d, resume, runs: Some(m.runs), known: None }) }
 }
 
 /// Mutate a child within its used codons (its drawn mutations when on the tape) and
@@ -691,16 +764,21 @@ fn mutate_and_score<R: Rng + ?Sized>(
     let Crossed { kid, stats: before, taped } = child;
     let genome = &mut arena[kid.start..kid.start + kid.len];
     let eff = mutation_span(&before, kid.len);
-    let unchanged = matches!(taped, Some((_, None, _)));
+    let unchanged = matches!(taped, Some(Taped { resume: Resume::Unchanged, .. }));
     let (mut st, mut fitness, mut runs) = match taped {
-        Some((d, mark, runs)) => {
+        Some(Taped { d, resume, runs, .. }) => {
             for &(i, new) in drawn {
                 genome[i as usize] = new;
             }
-            match mark {
-                None => (before, d, Some(runs)),
-                Some(m) => {
-                    let r = tape.map(env.compiled, env.start_rule, genome, env.limits, Origin::Mark(m), no_change);
+            let from = match resume {
+                Resume::Unchanged => None,
+                Resume::Mark(m) => Some(Origin::Mark(m)),
+                Resume::Start => Some(Origin::Start),
+            };
+            match from {
+                None => (before, d, runs),
+                Some(from) => {
+                    let r = tape.map(env.compiled, env.start_rule, genome, env.limits, from, no_change);
                     (r.stats, r.d, Some(r.runs))
                 }
             }
@@ -747,7 +825,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
     let limits = params.map_limits();
     let max_len = params.max_genome_length;
     let wanted = params.generation_size;
-    let Workspace { mapper, arena, tape, mutations, pairs, every_offspring, phenotypes } = ws;
+    let Workspace { mapper, arena, tape, mutations, pairs, every_offspring, phenotypes, derivations } = ws;
     arena.clear();
     tape.clear();
     // Offspring are mapped on the tape (`ge::tape`) when the grammar is scored from its
@@ -811,24 +889,30 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
         }
         let kids = [Kid { start, len: len0 }, Kid { start: start + len0, len: len1 }];
         let parents_of = [p0, p1];
-        let crossed =
-            |k: usize, arena: &[u32], tape: &mut Tape, mapper: &mut Mapper, muts: &mut Vec<(u32, u32)>, rng: &mut R| {
-                let kid = kids[k];
-                map_crossed(
-                    &env,
-                    kid,
-                    parents_of[k],
-                    cross,
-                    &arena[kid.start..kid.start + kid.len],
-                    tape,
-                    mapper,
-                    muts,
-                    rng,
-                )
-            };
-        let first = crossed(0, arena, tape, mapper, &mut mutations[0], rng);
+        let crossed = |k: usize,
+                       arena: &[u32],
+                       tape: &mut Tape,
+                       mapper: &mut Mapper,
+                       derivations: &mut Derivations,
+                       muts: &mut Vec<(u32, u32)>,
+                       rng: &mut R| {
+            let kid = kids[k];
+            map_crossed(
+                &env,
+                kid,
+                parents_of[k],
+                cross,
+                &arena[kid.start..kid.start + kid.len],
+                tape,
+                mapper,
+                derivations,
+                muts,
+                rng,
+            )
+        };
+        let first = crossed(0, arena, tape, mapper, derivations, &mut mutations[0], rng);
         let second = if deep_possible {
-            let second = crossed(1, arena, tape, mapper, &mut mutations[1], rng);
+            let second = crossed(1, arena, tape, mapper, derivations, &mut mutations[1], rng);
             if too_deep(&first.stats, params.max_tree_depth) || too_deep(&second.stats, params.max_tree_depth) {
                 arena.truncate(start);
                 stats.discarded_pairs += 1;
@@ -842,7 +926,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             let child = match (k, second) {
                 (0, _) => first,
                 (_, Some(c)) => c,
-                (_, None) => crossed(1, arena, tape, mapper, &mut mutations[1], rng),
+                (_, None) => crossed(1, arena, tape, mapper, derivations, &mut mutations[1], rng),
             };
             let (st, mut fitness, unchanged, last_run) =
                 mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
@@ -853,7 +937,8 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             }
             if best.is_none_or(|b| fitness_cmp(fitness, b.fitness) == Ordering::Greater) {
                 let same_as = (unchanged && !cross).then_some([i, j][k]);
-                best = Some(Best { kid: child.kid, fitness, stats: st, same_as, last_run });
+                let known = same_as.and(child.taped.and_then(|t| t.known));
+                best = Some(Best { kid: child.kid, fitness, stats: st, same_as, last_run, known });
             }
             if best.is_some_and(|b| settled(b.fitness)) {
                 break 'pairs;
@@ -886,22 +971,33 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             stats.winner_from_pool = true;
             pool[j].take()
         }
-        (Some((Cand::Kid, _)), Some(Best { kid, fitness, stats: st, same_as, last_run })) => {
+        (Some((Cand::Kid, _)), Some(Best { kid, fitness, stats: st, same_as, last_run, known })) => {
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
                 // Only the winner's phenotype is ever written out: its parent's when it
-                // derives like it, else the text of the runs its mapping on the tape
-                // wrote (one held already when a winner wrote the same runs), else mapped.
-                let phenotype = match (same_as.and_then(|p| pool[p].phenotype()), last_run) {
-                    (Some(known), _) => {
+                // derives like it (known to the parent, or to the parent's kept
+                // derivation once mapped), else the text of the runs its mapping on the
+                // tape wrote (one held already when a winner wrote the same runs), else
+                // mapped.
+                let kept = known.and_then(|k| derivations.by_key(k));
+                let phenotype = match (same_as.and_then(|p| pool[p].phenotype()), last_run, kept) {
+                    (Some(p), _, _) => {
                         stats.winner_phenotype_inherited = true;
-                        Arc::clone(known)
+                        Arc::clone(p)
                     }
-                    (None, Some(last)) => phenotypes.text(grammar, |key| tape.phenotype_runs(last, key)),
-                    (None, None) => {
+                    (None, Some(last), _) => phenotypes.text(grammar, |key| tape.phenotype_runs(last, key)),
+                    (None, None, Some(Derivation { phenotype: Some(p), .. })) => {
+                        stats.winner_phenotype_inherited = true;
+                        Arc::clone(p)
+                    }
+                    (None, None, kept) => {
                         let mut text = String::with_capacity(256);
                         mapper.map_into(grammar, &genome, limits, &mut text);
-                        Arc::from(text)
+                        let text: Arc<str> = Arc::from(text);
+                        if let Some(d) = kept {
+                            d.phenotype = Some(Arc::clone(&text));
+                        }
+                        text
                     }
                 };
                 Individual {
@@ -1333,6 +1429,44 @@ mod tests {
         let known = ws.phenotypes.by_runs.len();
         let mapped = mapped[0] + mapped[1];
         assert!(known >= 10 && known < mapped, "{known} phenotypes kept for {mapped} mapped winners");
+    }
+
+    /// Uncrossed children of parents whose derivations are kept (`ge::derivations`) are
+    /// not mapped before mutation, yet every step is the same: same random draws, same
+    /// winner, same statistics, as with a workspace that keeps nothing between steps.
+    #[test]
+    fn kept_derivations_change_no_step() {
+        let p = GeParams::default();
+        for (name, bnf) in [("forge", FORGE), ("sf", SF)] {
+            let g = grammar(bnf);
+            let mut setup = ChaCha8Rng::seed_from_u64(7);
+            // A few pools whose genomes (shared allocations) come back step after step,
+            // with phenotypes unknown, as received genes' are.
+            let mut pools: Vec<Vec<Individual>> = (0..4).map(|_| pool_of(&g, &p, &mut setup, 7)).collect();
+            pools.iter_mut().flatten().for_each(|i| i.phenotype = None);
+            let (mut kept, mut fresh) = (Workspace::default(), Workspace::default());
+            let (mut rk, mut rf) = (ChaCha8Rng::seed_from_u64(8), ChaCha8Rng::seed_from_u64(8));
+            let mut inherited = 0;
+            for step in 0..400 {
+                let base = &pools[step % pools.len()];
+                let (mut a, mut b) = (base.clone(), base.clone());
+                a.iter_mut().chain(b.iter_mut()).for_each(|i| i.fitness = (step % 3) as f64);
+                fresh.derivations = Derivations::default();
+                let wa = genetic_step_in(&mut kept, &g, &mut a, &p, &mut rk);
+                let wb = genetic_step_in(&mut fresh, &g, &mut b, &p, &mut rf);
+                let (Ok((wa, mut sa)), Ok((wb, mut sb))) = (wa, wb) else { panic!("{name}: step {step} failed") };
+                inherited += usize::from(sa.winner_phenotype_inherited && !sb.winner_phenotype_inherited);
+                (sa.winner_phenotype_inherited, sb.winner_phenotype_inherited) = (false, false);
+                assert_eq!(sa, sb, "{name}: step {step}");
+                assert_eq!(
+                    (&wa.genome, &wa.phenotype, wa.valid, wa.used_codons, wa.depth, wa.fitness.to_bits()),
+                    (&wb.genome, &wb.phenotype, wb.valid, wb.used_codons, wb.depth, wb.fitness.to_bits()),
+                    "{name}: step {step}"
+                );
+            }
+            assert!(kept.derivations.len() >= 4, "{name}: {} derivations kept", kept.derivations.len());
+            assert!(inherited > 0, "{name}: no winner took its phenotype from a kept derivation");
+        }
     }
 
     #[test]

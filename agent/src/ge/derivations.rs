@@ -1,0 +1,97 @@
+//! The derivations of recent parents, so that an uncrossed child is not mapped again.
+//!
+//! Why this exists: every child of a genetic step is mapped once before mutation, on
+//! the tape (`ge::tape`), to draw its mutations and to learn whether one of them picks
+//! another alternative (`old % n != new % n`, where `n` is the number of alternatives of
+//! the non-terminal that reads the codon). An uncrossed child is a copy of its parent,
+//! so that mapping is its parent's: the same used codons, depth and D, and the same `n`
+//! at every codon it reads. Genes are parents many times — in their own learner's
+//! steps and in every cell-mate's that receives them — and these first mappings were a
+//! third of a learner's instructions. So the first mapping of an uncrossed child of a
+//! parent with a shared genome is kept here, by the genome's allocation: the next
+//! uncrossed child of that parent draws its mutations from the kept `n`s, with the
+//! random draws of a mapping in the same order, and is mapped only if a mutation picks
+//! another alternative (then from its first codon, as the resumed mapping would give).
+//!
+//! Exactness: a kept derivation is used only for the same grammar (its
+//! [`Uid`](super::grammar::Uid)) and limits, and only when it was valid, so its codons
+//! read are exactly `0..used_codons` and its mapping from the start is the one the tape
+//! would make. The genome is held, so no other genome can take its address while the
+//! derivation is kept.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use super::mapper::{MapLimits, MapStats};
+
+/// Most derivations a [`Derivations`] keeps (it is emptied when full). An agent
+/// process hosting one agent keeps a few hundred bytes per entry, so the bound is
+/// small; a hundred learners' parents of the last steps fit.
+const KEPT: usize = 4096;
+
+/// The valid mapping of one parent's genome.
+#[derive(Debug)]
+pub(crate) struct Derivation {
+    /// The genome, held so that its address stays its own.
+    genome: Arc<[u32]>,
+    uid: u64,
+    limits: MapLimits,
+    pub(crate) stats: MapStats,
+    /// D of its phenotype.
+    pub(crate) d: f64,
+    /// The number of alternatives of the non-terminal that reads each used codon.
+    pub(crate) alts: Box<[u8]>,
+    /// Its phenotype, once a child that derives like it won.
+    pub(crate) phenotype: Option<Arc<str>>,
+}
+
+/// Kept derivations by genome allocation.
+#[derive(Debug, Default)]
+pub(crate) struct Derivations {
+    by_genome: HashMap<usize, Derivation, foldhash::fast::FixedState>,
+    /// The alternatives of the mapping being recorded.
+    pub(crate) recording: Vec<u8>,
+}
+
+/// The key of a shared genome: its allocation's address.
+pub(crate) fn key(genome: &Arc<[u32]>) -> usize {
+    Arc::as_ptr(genome).cast::<u32>() as usize
+}
+
+impl Derivations {
+    /// The kept derivation of `genome` under grammar `uid` and `limits`.
+    pub(crate) fn get(&self, genome: &Arc<[u32]>, uid: u64, limits: MapLimits) -> Option<&Derivation> {
+        self.by_genome
+            .get(&key(genome))
+            .filter(|d| Arc::ptr_eq(&d.genome, genome) && d.uid == uid && d.limits == limits)
+    }
+
+    /// The kept derivation with key `key`, to give it its phenotype.
+    pub(crate) fn by_key(&mut self, key: usize) -> Option<&mut Derivation> {
+        self.by_genome.get_mut(&key)
+    }
+
+    /// Keep the valid mapping `stats` and D `d` of `genome`, whose alternatives per
+    /// codon are in [`Derivations::recording`].
+    pub(crate) fn keep(&mut self, genome: &Arc<[u32]>, uid: u64, limits: MapLimits, stats: MapStats, d: f64) {
+        debug_assert!(stats.valid && self.recording.len() == stats.used_codons);
+        if self.by_genome.len() >= KEPT {
+            self.by_genome.clear();
+        }
+        let derivation = Derivation {
+            genome: Arc::clone(genome),
+            uid,
+            limits,
+            stats,
+            d,
+            alts: self.recording.as_slice().into(),
+            phenotype: None,
+        };
+        self.by_genome.insert(key(genome), derivation);
+    }
+
+    #[cfg(test)]
+    pub(crate) fn len(&self) -> usize {
+        self.by_genome.len()
+    }
+}
