@@ -17,17 +17,19 @@
 //! [`Uid`](super::grammar::Uid)) and limits, and only when it was valid, so its codons
 //! read are exactly `0..used_codons` and its mapping from the start is the one the tape
 //! would make. The genome is held, so no other genome can take its address while the
-//! derivation is kept.
+//! derivation is kept; derivations whose genome only this cache holds are dropped when
+//! the cache grows.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
 use super::mapper::{MapLimits, MapStats};
 
-/// Most derivations a [`Derivations`] keeps (it is emptied when full). An agent
-/// process hosting one agent keeps a few hundred bytes per entry, so the bound is
-/// small; a hundred learners' parents of the last steps fit.
-const KEPT: usize = 4096;
+/// Derivations a [`Derivations`] keeps before it drops those of genomes no one else
+/// holds any more (they can be no one's parent again); it keeps up to twice as many
+/// as are alive after that, so the bound follows the process's live genes: a few for
+/// an agent process hosting one agent, some ten thousand for a crowded trial.
+const FIRST_BOUND: usize = 256;
 
 /// The valid mapping of one parent's genome.
 #[derive(Debug)]
@@ -49,6 +51,8 @@ pub(crate) struct Derivation {
 #[derive(Debug, Default)]
 pub(crate) struct Derivations {
     by_genome: HashMap<usize, Derivation, foldhash::fast::FixedState>,
+    /// When to drop the derivations of dead genomes ([`FIRST_BOUND`]).
+    bound: usize,
     /// The alternatives of the mapping being recorded.
     pub(crate) recording: Vec<u8>,
 }
@@ -75,8 +79,9 @@ impl Derivations {
     /// codon are in [`Derivations::recording`].
     pub(crate) fn keep(&mut self, genome: &Arc<[u32]>, uid: u64, limits: MapLimits, stats: MapStats, d: f64) {
         debug_assert!(stats.valid && self.recording.len() == stats.used_codons);
-        if self.by_genome.len() >= KEPT {
-            self.by_genome.clear();
+        if self.by_genome.len() >= self.bound.max(FIRST_BOUND) {
+            self.by_genome.retain(|_, d| Arc::strong_count(&d.genome) > 1);
+            self.bound = 2 * self.by_genome.len();
         }
         let derivation = Derivation {
             genome: Arc::clone(genome),

@@ -31,7 +31,7 @@ use super::diversity::diversity;
 use super::grammar::{fast_mod, Grammar};
 use super::init::uniform_tree;
 use super::mapper::{MapLimits, MapStats, Mapper};
-use super::tape::{no_change, Mapped, Mark, Origin, Tape};
+use super::tape::{no_change, Mapped, Mark, Origin, Runs, Tape};
 
 /// GE parameters (§5.1 defaults: the BeTr-GEESE / collect-phase values).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -432,8 +432,8 @@ struct Taped {
     d: f64,
     /// How the mutated child is mapped.
     resume: Resume,
-    /// The last run of terminals of the mapping, when made on this step's tape.
-    runs: Option<u32>,
+    /// The runs of terminals of the mapping, when made on this step's tape.
+    runs: Option<Runs>,
     /// The key of the parent's kept derivation ([`Derivations`]) it was read from.
     known: Option<usize>,
 }
@@ -460,8 +460,8 @@ struct Best {
     /// The parent it derives exactly like (uncrossed, no mutation picking another
     /// alternative), whose phenotype is then its own.
     same_as: Option<usize>,
-    /// The last run of terminals of its mapping on the tape.
-    last_run: Option<u32>,
+    /// The runs of terminals of its mapping on the tape.
+    last_run: Option<Runs>,
     /// With `same_as`: the key of the parent's kept derivation it was read from.
     known: Option<usize>,
 }
@@ -584,7 +584,7 @@ const PHENOTYPES_KEPT: usize = 4096;
 
 impl Phenotypes {
     /// The phenotype written by the runs of `grammar` that `runs` appends to a
-    /// buffer, last run first.
+    /// buffer, in order.
     fn text(&mut self, grammar: &Grammar, runs: impl FnOnce(&mut Vec<u32>)) -> Arc<str> {
         let uid = grammar.uid().0;
         self.key.clear();
@@ -595,7 +595,7 @@ impl Phenotypes {
         }
         let compiled = grammar.compiled();
         let mut text = String::with_capacity(256);
-        for &r in self.key[2..].iter().rev() {
+        for &r in &self.key[2..] {
             text.push_str(&compiled.runs[r as usize].text);
         }
         let text: Arc<str> = Arc::from(text);
@@ -749,8 +749,8 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
 /// map and score the result; a child that maps valid but too deep is mutated again
 /// from scratch (at most [`MAX_REMUTATIONS`] times). The flag says that the mutated
 /// child derives exactly as before mutation: on the tape, no mutation picked another
-/// alternative (and it was not mutated again). The last value is the last run of
-/// terminals of the final mapping when it was made on the tape ([`Tape::phenotype_runs`]).
+/// alternative (and it was not mutated again). The last value is the runs of terminals
+/// of the final mapping when it was made on the tape ([`Tape::phenotype_runs`]).
 fn mutate_and_score<R: Rng + ?Sized>(
     env: &Env<'_>,
     child: Crossed,
@@ -759,7 +759,7 @@ fn mutate_and_score<R: Rng + ?Sized>(
     tape: &mut Tape,
     mapper: &mut Mapper,
     rng: &mut R,
-) -> (MapStats, f64, bool, Option<u32>) {
+) -> (MapStats, f64, bool, Option<Runs>) {
     let Env { grammar, params, gaps, .. } = *env;
     let Crossed { kid, stats: before, taped } = child;
     let genome = &mut arena[kid.start..kid.start + kid.len];

@@ -46,8 +46,11 @@ struct Cell {
 struct Snap {
     /// Top of the stack: the non-terminal about to read the codon.
     head: u32,
-    /// The last run of terminals written so far (see [`Tape::runs`]).
-    runs: u32,
+    /// The runs of terminals written so far (see [`Tape::runs`]): the mapping's own
+    /// from `runs_at`, `runs_len` of them (snapshots are taken in mappings from the
+    /// start only).
+    runs_at: u32,
+    runs_len: u32,
     max_depth: u32,
     need: u32,
     scan: DiversityScan,
@@ -68,8 +71,16 @@ pub(crate) struct Mapped {
     pub(crate) d: f64,
     /// The state at the first codon the hook reported as changed.
     pub(crate) mark: Option<Mark>,
-    /// The last run of terminals the mapping wrote ([`Tape::phenotype_runs`]).
-    pub(crate) runs: u32,
+    /// The runs of terminals the mapping wrote ([`Tape::phenotype_runs`]).
+    pub(crate) runs: Runs,
+}
+
+/// The runs of terminals a mapping wrote, as two spans of [`Tape::runs`]: those of the
+/// mapping it resumed from, up to the kept state, then its own.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Runs {
+    before: (u32, u32),
+    own: (u32, u32),
 }
 
 /// Where a mapping starts: from scratch, or from a kept state (of a genome that agrees
@@ -85,18 +96,10 @@ pub(crate) enum Origin {
 pub(crate) struct Tape {
     cells: Vec<Cell>,
     snaps: Vec<Snap>,
-    /// The runs of terminals the mappings wrote, each linked to the run written before
-    /// it (a persistent list, as the stack): a mapping's phenotype is the text of its
-    /// runs in order, so the winner's phenotype is known without mapping it again.
-    runs: Vec<RunLink>,
-}
-
-/// A run of terminals a mapping wrote (a run id of `Compiled::runs`), and the run
-/// written before it.
-#[derive(Debug, Clone, Copy)]
-struct RunLink {
-    run: u32,
-    before: u32,
+    /// The runs of terminals (ids of `Compiled::runs`) the mappings wrote, each
+    /// mapping's in one span ([`Runs`]): a mapping's phenotype is the text of its runs
+    /// in order, so the winner's phenotype is known without mapping it again.
+    runs: Vec<u32>,
 }
 
 /// A hook that never reports a change (for mappings that keep nothing).
@@ -112,16 +115,12 @@ impl Tape {
         self.runs.clear();
     }
 
-    /// The run ids of the phenotype of a valid mapping whose last run is `last`
-    /// ([`Mapped::runs`]), last first, appended to `out`. The phenotype is the
-    /// concatenation of their texts in reverse: the mapper writes exactly the runs the
-    /// tape feeds to the diversity scan, at the same points.
-    pub(crate) fn phenotype_runs(&self, last: u32, out: &mut Vec<u32>) {
-        let mut at = last;
-        while at != NIL {
-            let link = self.runs[at as usize];
-            out.push(link.run);
-            at = link.before;
+    /// The run ids of the phenotype of a valid mapping ([`Mapped::runs`]), in order,
+    /// appended to `out`. The phenotype is the concatenation of their texts: the mapper
+    /// writes exactly the runs the tape feeds to the diversity scan, at the same points.
+    pub(crate) fn phenotype_runs(&self, runs: Runs, out: &mut Vec<u32>) {
+        for (at, len) in [runs.before, runs.own] {
+            out.extend_from_slice(&self.runs[at as usize..(at + len) as usize]);
         }
     }
 
@@ -146,19 +145,20 @@ impl Tape {
     ) -> Mapped {
         let n = genome.len();
         let mut mark = None;
-        let (mut head, mut used, mut max_depth, mut need, mut scan, mut runs) = match from {
+        let own = self.runs.len() as u32;
+        let (mut head, mut used, mut max_depth, mut need, mut scan, before) = match from {
             Origin::Start => {
                 self.cells.push(Cell { entry: pack_symbol(Symbol::NonTerminal(start)) | (1 << 32), below: NIL });
                 let head = self.cells.len() as u32 - 1;
-                (head, 0, 1, c.rules[start as usize].min_codons as usize, DiversityScan::default(), NIL)
+                (head, 0, 1, c.rules[start as usize].min_codons as usize, DiversityScan::default(), (own, 0))
             }
             Origin::Mark(m) => {
                 let s = self.snaps[m.snap as usize];
-                (s.head, m.at as usize, s.max_depth as usize, s.need as usize, s.scan, s.runs)
+                (s.head, m.at as usize, s.max_depth as usize, s.need as usize, s.scan, (s.runs_at, s.runs_len))
             }
         };
         if n == 0 {
-            return Mapped { stats: EMPTY_GENOME, d: f64::NAN, mark, runs: NIL };
+            return Mapped { stats: EMPTY_GENOME, d: f64::NAN, mark, runs: Runs { before, own: (own, 0) } };
         }
         let depth_limit = limits.depth_cap();
         // A resumed mapping of a shorter genome may already have too few codons left.
@@ -178,8 +178,7 @@ impl Tape {
                     break;
                 }
                 scan.feed_run(&run.toks, run.effect.as_ref());
-                self.runs.push(RunLink { run: code, before: runs });
-                runs = self.runs.len() as u32 - 1;
+                self.runs.push(code);
                 head = below;
                 continue;
             }
@@ -192,7 +191,15 @@ impl Tape {
             let nalts = rule.alts.len() as u32;
             let codon = genome[used];
             if changed(used, codon, nalts, rule.magic) && mark.is_none() {
-                self.snaps.push(Snap { head, runs, max_depth: depth_before as u32, need: need as u32, scan });
+                let runs_len = self.runs.len() as u32 - own;
+                self.snaps.push(Snap {
+                    head,
+                    runs_at: own,
+                    runs_len,
+                    max_depth: depth_before as u32,
+                    need: need as u32,
+                    scan,
+                });
                 mark = Some(Mark { at: used as u32, snap: self.snaps.len() as u32 - 1 });
             }
             let alt = &rule.alts[fast_mod(codon, rule.magic, nalts) as usize];
@@ -213,8 +220,7 @@ impl Tape {
                 }
                 max_depth = max_depth.max(d + 1);
                 scan.feed_run(&run.toks, run.effect.as_ref());
-                self.runs.push(RunLink { run: lead, before: runs });
-                runs = self.runs.len() as u32 - 1;
+                self.runs.push(lead);
             }
             for &x in alt.items_rev.iter() {
                 self.cells.push(Cell { entry: x | child_depth, below: head });
@@ -224,6 +230,7 @@ impl Tape {
         let valid = valid_so_far && head == NIL;
         let stats = MapStats { valid, used_codons: used, depth: max_depth };
         let d = if valid { scan.finish() } else { f64::NAN };
+        let runs = Runs { before, own: (own, self.runs.len() as u32 - own) };
         Mapped { stats, d, mark, runs }
     }
 }
