@@ -26,10 +26,16 @@ use std::sync::Arc;
 use super::mapper::{MapLimits, MapStats};
 
 /// Derivations a [`Derivations`] keeps before it drops those of genomes no one else
-/// holds any more (they can be no one's parent again); it keeps up to twice as many
-/// as are alive after that, so the bound follows the process's live genes: a few for
-/// an agent process hosting one agent, some ten thousand for a crowded trial.
+/// holds any more (they can be no one's parent again); it keeps up to a quarter more
+/// than are alive after that, so the bound follows the process's live genes: a few for
+/// an agent process hosting one agent, some ten thousand for a crowded trial. (With
+/// twice as many, the dead genomes held took 100,000 agents over 2 GiB.)
 const FIRST_BOUND: usize = 256;
+
+/// Most derivations kept: past it, after dropping the dead genomes' ones, all are
+/// dropped (a trial of 100,000 agents has more live genes than are worth their memory:
+/// ~150 bytes each, and it has to fit in 2 GiB).
+const MOST: usize = 16_384;
 
 /// The valid mapping of one parent's genome.
 #[derive(Debug)]
@@ -81,7 +87,10 @@ impl Derivations {
         debug_assert!(stats.valid && self.recording.len() == stats.used_codons);
         if self.by_genome.len() >= self.bound.max(FIRST_BOUND) {
             self.by_genome.retain(|_, d| Arc::strong_count(&d.genome) > 1);
-            self.bound = 2 * self.by_genome.len();
+            if self.by_genome.len() > MOST {
+                self.by_genome.clear();
+            }
+            self.bound = self.by_genome.len() + self.by_genome.len() / 4;
         }
         let derivation = Derivation {
             genome: Arc::clone(genome),
