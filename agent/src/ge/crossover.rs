@@ -158,7 +158,15 @@ impl PairSampler {
         let ((l0, u0), (l1, u1)) = (self.lens[i], self.lens[j]);
         let copies_fit = l0 >= 1 && l1 >= 1 && l0 <= max && l1 <= max;
         let (dlo, dhi) = ((1 - l1).max(l0 - max), (max - l1).min(l0 - 1));
-        let count = if dhi < dlo || u0 < 1 || u1 < 1 { 0 } else { at_most(u0, u1, dhi) - at_most(u0, u1, dlo - 1) };
+        let count = if dhi < dlo || u0 < 1 || u1 < 1 {
+            0
+        } else if dlo == 0 && dhi == 0 {
+            // Both parents at the length limit (the usual case once genes have grown):
+            // only equal cut points fit.
+            u0.min(u1)
+        } else {
+            at_most(u0, u1, dhi) - at_most(u0, u1, dlo - 1)
+        };
         let crossed = if count > 0 { self.crossover_prob * count as f64 / (u0 * u1) as f64 } else { 0.0 };
         let weight = crossed + if copies_fit { 1.0 - self.crossover_prob } else { 0.0 };
         Pair { i, j, weight, crossed, u0, u1, dlo, dhi, count }
@@ -232,6 +240,15 @@ mod tests {
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
     use std::collections::HashMap;
+
+    #[test]
+    fn equal_cut_points_count_as_the_band_does() {
+        for u0 in 1..=30i64 {
+            for u1 in 1..=30i64 {
+                assert_eq!(u0.min(u1), at_most(u0, u1, 0) - at_most(u0, u1, -1), "u0 {u0} u1 {u1}");
+            }
+        }
+    }
 
     #[test]
     fn band_counts_match_brute_force() {
