@@ -34,12 +34,11 @@ fn main() {
     if !lld_default || env::var_os("GEESE_PLAIN_LINK").is_some_and(|v| v == "1") {
         return;
     }
-    let order = std::path::Path::new(&cfg("CARGO_MANIFEST_DIR")).join("geese-agent.order");
-    let copy = std::path::Path::new(&cfg("OUT_DIR")).join("geese-agent.order");
-    if let Err(e) = std::fs::copy(&order, &copy) {
-        panic!("cannot copy the link order {} to {}: {e}", order.display(), copy.display());
+    let source = std::path::Path::new(&cfg("CARGO_MANIFEST_DIR")).join("geese-agent.order");
+    let order = std::path::Path::new(&cfg("OUT_DIR")).join("geese-agent.order");
+    if let Err(e) = std::fs::copy(&source, &order) {
+        panic!("cannot copy the link order {} to {}: {e}", source.display(), order.display());
     }
-    let order = copy;
     println!("cargo:rustc-link-arg-bin=geese-agent=-Wl,--symbol-ordering-file={}", order.display());
     println!("cargo:rustc-link-arg-bin=geese-agent=-Wl,--no-warn-symbol-ordering");
     println!("cargo:rustc-link-arg-bin=geese-agent=-Wl,-z,pack-relative-relocs");

@@ -31,7 +31,7 @@ use super::diversity::diversity;
 use super::grammar::{fast_mod, Grammar};
 use super::init::uniform_tree;
 use super::mapper::{MapLimits, MapStats, Mapper};
-use super::tape::{no_change, Mapped, Mark, Origin, Runs, Tape};
+use super::tape::{no_change, Mapped, Origin, Runs, Tape};
 
 /// GE parameters (§5.1 defaults: the BeTr-GEESE / collect-phase values).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -430,23 +430,15 @@ struct Crossed {
 struct Taped {
     /// D before mutation.
     d: f64,
-    /// How the mutated child is mapped.
-    resume: Resume,
+    /// Where the mutated child is mapped from: `None` when no mutation picks another
+    /// alternative (it derives as before mutation), else from the state kept at the
+    /// first codon whose mutation does, or from its first codon when its mapping
+    /// before mutation was not made (read from its parent's kept derivation).
+    resume: Option<Origin>,
     /// The runs of terminals of the mapping, when made on this step's tape.
     runs: Option<Runs>,
     /// The key of the parent's kept derivation ([`Derivations`]) it was read from.
     known: Option<usize>,
-}
-
-/// How a mutated child is mapped.
-#[derive(Debug, Clone, Copy)]
-enum Resume {
-    /// No mutation picks another alternative: it derives as before mutation.
-    Unchanged,
-    /// From the state kept at its first codon whose mutation picks another alternative.
-    Mark(Mark),
-    /// From its first codon (its mapping before mutation was not made).
-    Start,
 }
 
 /// The best offspring of a genetic step so far.
@@ -461,7 +453,7 @@ struct Best {
     /// alternative), whose phenotype is then its own.
     same_as: Option<usize>,
     /// The runs of terminals of its mapping on the tape.
-    last_run: Option<Runs>,
+    runs: Option<Runs>,
     /// With `same_as`: the key of the parent's kept derivation it was read from.
     known: Option<usize>,
 }
@@ -709,7 +701,7 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
             mutations.push((next as u32, rng.random_range(0..=codon_size)));
             next = gaps.next_from(rng, next + 1);
         }
-        let resume = if changed { Resume::Start } else { Resume::Unchanged };
+        let resume = changed.then_some(Origin::Start);
         let key = shared.map(derivations::key);
         return Crossed { kid, stats: known.stats, taped: Some(Taped { d: known.d, resume, runs: None, known: key }) };
     }
@@ -741,7 +733,7 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
     if let (Some(g), true) = (shared, fits && m.stats.valid) {
         derivations.keep(g, env.grammar.uid().0, env.limits, m.stats, m.d);
     }
-    let resume = m.mark.map_or(Resume::Unchanged, Resume::Mark);
+    let resume = m.mark.map(Origin::Mark);
     Crossed { kid, stats: m.stats, taped: Some(Taped { d: m.d, resume, runs: Some(m.runs), known: None }) }
 }
 
@@ -764,18 +756,13 @@ fn mutate_and_score<R: Rng + ?Sized>(
     let Crossed { kid, stats: before, taped } = child;
     let genome = &mut arena[kid.start..kid.start + kid.len];
     let eff = mutation_span(&before, kid.len);
-    let unchanged = matches!(taped, Some(Taped { resume: Resume::Unchanged, .. }));
+    let unchanged = matches!(taped, Some(Taped { resume: None, .. }));
     let (mut st, mut fitness, mut runs) = match taped {
         Some(Taped { d, resume, runs, .. }) => {
             for &(i, new) in drawn {
                 genome[i as usize] = new;
             }
-            let from = match resume {
-                Resume::Unchanged => None,
-                Resume::Mark(m) => Some(Origin::Mark(m)),
-                Resume::Start => Some(Origin::Start),
-            };
-            match from {
+            match resume {
                 None => (before, d, runs),
                 Some(from) => {
                     let r = tape.map(env.compiled, env.start_rule, genome, env.limits, from, no_change);
@@ -928,7 +915,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
                 (_, Some(c)) => c,
                 (_, None) => crossed(1, arena, tape, mapper, derivations, &mut mutations[1], rng),
             };
-            let (st, mut fitness, unchanged, last_run) =
+            let (st, mut fitness, unchanged, runs) =
                 mutate_and_score(&env, child, arena, &mutations[k], tape, mapper, rng);
             made += 1;
             if !st.valid {
@@ -938,7 +925,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             if best.is_none_or(|b| fitness_cmp(fitness, b.fitness) == Ordering::Greater) {
                 let same_as = (unchanged && !cross).then_some([i, j][k]);
                 let known = same_as.and(child.taped.and_then(|t| t.known));
-                best = Some(Best { kid: child.kid, fitness, stats: st, same_as, last_run, known });
+                best = Some(Best { kid: child.kid, fitness, stats: st, same_as, runs, known });
             }
             if best.is_some_and(|b| settled(b.fitness)) {
                 break 'pairs;
@@ -971,7 +958,7 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             stats.winner_from_pool = true;
             pool[j].take()
         }
-        (Some((Cand::Kid, _)), Some(Best { kid, fitness, stats: st, same_as, last_run, known })) => {
+        (Some((Cand::Kid, _)), Some(Best { kid, fitness, stats: st, same_as, runs, known })) => {
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
                 // Only the winner's phenotype is ever written out: its parent's when it
@@ -980,12 +967,12 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
                 // tape wrote (one held already when a winner wrote the same runs), else
                 // mapped.
                 let kept = known.and_then(|k| derivations.by_key(k));
-                let phenotype = match (same_as.and_then(|p| pool[p].phenotype()), last_run, kept) {
+                let phenotype = match (same_as.and_then(|p| pool[p].phenotype()), runs, kept) {
                     (Some(p), _, _) => {
                         stats.winner_phenotype_inherited = true;
                         Arc::clone(p)
                     }
-                    (None, Some(last), _) => phenotypes.text(grammar, |key| tape.phenotype_runs(last, key)),
+                    (None, Some(runs), _) => phenotypes.text(grammar, |key| tape.phenotype_runs(runs, key)),
                     (None, None, Some(Derivation { phenotype: Some(p), .. })) => {
                         stats.winner_phenotype_inherited = true;
                         Arc::clone(p)
