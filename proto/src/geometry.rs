@@ -34,6 +34,43 @@ pub struct Geometry {
     pub width: i32,
     pub height: i32,
     pub grid: i32,
+    /// Derived in [`Geometry::new`] (not encoded): every agent and object look-up of
+    /// every step divides by the grid and by the number of columns, and a multiply by
+    /// a precomputed reciprocal ([`Divisor`]) costs a fraction of a division.
+    #[serde(skip_serializing)]
+    cols: Divisor,
+    #[serde(skip_serializing)]
+    rows: i32,
+    #[serde(skip_serializing)]
+    by_grid: Divisor,
+}
+
+/// Division of a non-negative `i32` below 2²⁴ by a fixed divisor `d` in [1, 2²⁴) by a
+/// multiply and a shift: with `m = ⌈2⁴⁰ / d⌉`, `⌊n·m / 2⁴⁰⌋ = ⌊n / d⌋` whenever
+/// `n·d < 2⁴⁰` (the error of `m`, under `d / 2⁴⁰` per unit of `n`, cannot reach the
+/// next multiple of `d`). Geometries keep coordinates below 10⁴ and cell indices below
+/// 10⁶ ([`MAX_ARENA_SIDE`], [`MAX_CELLS`]), far inside that.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Divisor {
+    d: i32,
+    m: u64,
+}
+
+impl Divisor {
+    const SHIFT: u32 = 40;
+    fn new(d: i32) -> Divisor {
+        let d = d.max(1);
+        Divisor { d, m: (1u64 << Self::SHIFT).div_ceil(d as u64) }
+    }
+    /// `n / d`, by the multiply within its range (a division outside it).
+    #[inline]
+    fn div(self, n: i32) -> i32 {
+        if (0..1 << 24).contains(&n) {
+            ((n as u64 * self.m) >> Self::SHIFT) as i32
+        } else {
+            n / self.d
+        }
+    }
 }
 
 /// The fields of a [`Geometry`] as encoded (the same encoding), checked by
@@ -95,7 +132,19 @@ impl Geometry {
         if cells > MAX_CELLS {
             return Err(GeometryError::TooManyCells { grid, cells, max: MAX_CELLS });
         }
-        Ok(Geometry { width, height, grid })
+        Ok(Geometry::derived(width, height, grid))
+    }
+
+    /// The geometry with its derived fields, unchecked.
+    fn derived(width: i32, height: i32, grid: i32) -> Geometry {
+        Geometry {
+            width,
+            height,
+            grid,
+            cols: Divisor::new(width / grid),
+            rows: height / grid,
+            by_grid: Divisor::new(grid),
+        }
     }
 
     #[inline]
@@ -109,12 +158,12 @@ impl Geometry {
     /// Number of columns (cells along x).
     #[inline]
     pub fn cols(&self) -> i32 {
-        self.width / self.grid
+        self.cols.d
     }
     /// Number of rows (cells along y).
     #[inline]
     pub fn rows(&self) -> i32 {
-        self.height / self.grid
+        self.rows
     }
     /// Number of cells (widened: the product is computed in `usize`).
     #[inline]
@@ -130,17 +179,17 @@ impl Geometry {
     /// for every agent and object look-up of every step).
     #[inline]
     pub fn col_row(&self, p: Pos) -> (i32, i32) {
-        let along = |v: i32, extent: i32| {
+        let along = |v: i32, extent: i32, last: i32| {
             let t = i64::from(v) + i64::from(extent / 2);
             if t <= 0 {
                 0
             } else if t >= i64::from(extent) {
-                extent / self.grid - 1
+                last
             } else {
-                (t / i64::from(self.grid)) as i32
+                self.by_grid.div(t as i32)
             }
         };
-        (along(p.x, self.width), along(p.y, self.height))
+        (along(p.x, self.width, self.cols.d - 1), along(p.y, self.height, self.rows - 1))
     }
 
     #[inline]
@@ -153,7 +202,8 @@ impl Geometry {
     #[inline]
     pub fn cell_col_row(&self, cell: CellIdx) -> (i32, i32) {
         let c = cell as i32;
-        (c % self.cols(), c / self.cols())
+        let r = self.cols.div(c);
+        (c - r * self.cols.d, r)
     }
 
     /// The lower-left corner of a cell, in arena coordinates.
@@ -373,10 +423,32 @@ mod tests {
         assert!(e.to_string().contains("4000000 cells"), "{e}");
     }
 
+    /// The multiply-and-shift division equals `/` at every multiple of every divisor a
+    /// geometry can have and one below it, for every coordinate and cell index a
+    /// geometry can have (and beyond that range, where it divides).
+    #[test]
+    fn divisors_divide_exactly() {
+        for d in 1..=MAX_ARENA_SIDE {
+            let v = Divisor::new(d);
+            let mut n = 0i64;
+            while n <= MAX_CELLS as i64 + 1 {
+                for k in [n - 1, n, n + 1] {
+                    if k >= 0 {
+                        assert_eq!(v.div(k as i32), k as i32 / d, "{k} / {d}");
+                    }
+                }
+                n += i64::from(d);
+            }
+            for k in [-1, -d, 1 << 24, i32::MAX] {
+                assert_eq!(v.div(k), k / d, "{k} / {d}");
+            }
+        }
+    }
+
     #[test]
     fn cell_count_is_widened_and_cells_fit() {
         // An unchecked geometry (public fields) whose cell count overflows i32.
-        let g = Geometry { width: 100_000, height: 100_000, grid: 1 };
+        let g = Geometry::derived(100_000, 100_000, 1);
         assert_eq!(g.cell_count(), 10_000_000_000);
         let g = Geometry::new(MAX_ARENA_SIDE, 100, 1).unwrap();
         let corner = Pos::new(MAX_ARENA_SIDE / 2, 50);
