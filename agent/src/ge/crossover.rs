@@ -220,13 +220,25 @@ impl PairSampler {
         if rng.random::<f64>() * p.weight >= p.crossed {
             return Some(Draw { i: p.i, j: p.j, cut: None });
         }
-        // A uniform (a, b) in the band: the k-th one in order of a, then b.
-        let mut k = rng.random_range(0..p.count);
-        for a in 1..=p.u0 {
-            let (b_lo, b_hi) = ((a - p.dhi).max(1), (a - p.dlo).min(p.u1));
+        // A uniform (a, b) in the band.
+        let (a, b) = p.kth(rng.random_range(0..p.count));
+        Some(Draw { i: p.i, j: p.j, cut: Some((a as usize, b as usize)) })
+    }
+}
+
+impl Pair {
+    /// The `k`-th cut-point pair (a, b) of the band, in order of a, then b (`k` below
+    /// `count`). With equal cut points only (both parents at the length limit, the
+    /// usual case) that is (k + 1, k + 1); otherwise a walk over a.
+    fn kth(&self, mut k: i64) -> (i64, i64) {
+        if self.dlo == 0 && self.dhi == 0 {
+            return (k + 1, k + 1);
+        }
+        for a in 1..=self.u0 {
+            let (b_lo, b_hi) = ((a - self.dhi).max(1), (a - self.dlo).min(self.u1));
             let n = (b_hi - b_lo + 1).max(0);
             if k < n {
-                return Some(Draw { i: p.i, j: p.j, cut: Some((a as usize, (b_lo + k) as usize)) });
+                return (a, b_lo + k);
             }
             k -= n;
         }
@@ -246,6 +258,27 @@ mod tests {
         for u0 in 1..=30i64 {
             for u1 in 1..=30i64 {
                 assert_eq!(u0.min(u1), at_most(u0, u1, 0) - at_most(u0, u1, -1), "u0 {u0} u1 {u1}");
+            }
+        }
+    }
+
+    /// The k-th cut-point pair of a band is the k-th of the band's pairs listed by a,
+    /// then b, for bands of equal cut points (the shortcut) and others.
+    #[test]
+    fn kth_pair_of_a_band_is_the_kth_listed() {
+        for u0 in 1..=12i64 {
+            for u1 in 1..=12i64 {
+                for (dlo, dhi) in [(0, 0), (-2, 1), (-5, -1), (1, 4)] {
+                    let listed: Vec<(i64, i64)> = (1..=u0)
+                        .flat_map(|a| (1..=u1).map(move |b| (a, b)))
+                        .filter(|&(a, b)| (dlo..=dhi).contains(&(a - b)))
+                        .collect();
+                    let count = listed.len() as i64;
+                    let p = Pair { i: 0, j: 1, weight: 1.0, crossed: 1.0, u0, u1, dlo, dhi, count };
+                    for (k, &want) in listed.iter().enumerate() {
+                        assert_eq!(p.kth(k as i64), want, "u {u0} {u1} band {dlo}..={dhi} k {k}");
+                    }
+                }
             }
         }
     }
