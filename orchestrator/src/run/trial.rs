@@ -172,9 +172,22 @@ impl Reading {
         if self.slot.len() != cell_count {
             self.slot = vec![Self::NONE; cell_count];
         }
-        self.cells.extend(of_body.iter().flatten());
-        self.cells.sort_unstable();
-        self.cells.dedup();
+        // Each occupied cell once (its slot marked), then ascending: read off the marks
+        // where the arena has not many more cells than agents (sorting 10,000 cells
+        // took a sixth of a sparse step's sequential part), else sorted.
+        for &c in of_body.iter().flatten() {
+            let s = &mut self.slot[c as usize];
+            if *s == Self::NONE {
+                *s = 0;
+                self.cells.push(c);
+            }
+        }
+        if cell_count <= 16 * self.cells.len() {
+            self.cells.clear();
+            self.cells.extend((0..cell_count as CellIdx).filter(|&c| self.slot[c as usize] != Self::NONE));
+        } else {
+            self.cells.sort_unstable();
+        }
         for (i, &c) in self.cells.iter().enumerate() {
             self.slot[c as usize] = i as u32;
         }
