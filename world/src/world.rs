@@ -24,6 +24,17 @@ pub struct Object {
     pub dropped: Vec<ObjectId>,
 }
 
+/// The outcome of a move computed ahead of resolving ([`World::move_hint`]), with the
+/// inputs it was computed from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MoveHint {
+    from: Pos,
+    heading: f64,
+    weight: i32,
+    dest: Pos,
+    new_heading: f64,
+}
+
 /// An agent's body as the world keeps it.
 #[derive(Clone, Debug)]
 pub struct Body {
@@ -346,7 +357,32 @@ impl World {
     /// arrive). Applies them in agent-id order, runs scheduled perturbations, advances the
     /// step counter and returns the step report.
     pub fn resolve(&mut self, intents: &[Option<Intent>]) -> StepReport {
-        self.resolve_by(|_, id| intents.get(id as usize).and_then(Option::as_ref))
+        self.resolve_hinted(intents, &[])
+    }
+
+    /// [`World::resolve`] with the outcome of each intent's first move computed
+    /// beforehand (`hints[i]` for agent i, [`World::move_hint`]): an in-process trial
+    /// computes them on its worker threads, and the one thread that applies the intents
+    /// in order then only checks that a hint's inputs are the agent's.
+    pub fn resolve_hinted(&mut self, intents: &[Option<Intent>], hints: &[Option<MoveHint>]) -> StepReport {
+        self.resolve_each(
+            |_, id| intents.get(id as usize).and_then(Option::as_ref),
+            |id| hints.get(id as usize).copied().flatten(),
+        )
+    }
+
+    /// Where an intent's first op, if it is a move, takes its agent, computed from the
+    /// world as the step starts: nothing applied before that op changes the agent's
+    /// body (no other intent touches it), so it is what applying the op computes.
+    pub fn move_hint(&self, intent: &Intent) -> Option<MoveHint> {
+        let Some(&Op::Move { heading, .. }) = intent.ops.first() else { return None };
+        let body = self.bodies.get(intent.agent as usize)?;
+        if !heading.is_finite() {
+            return None;
+        }
+        let weight = rules::carried_weight(self.carried(intent.agent));
+        let (dest, new_heading) = rules::destination(&self.geom, body.pos, heading, weight);
+        Some(MoveHint { from: body.pos, heading, weight, dest, new_heading })
     }
 
     /// Resolve step `self.step`, asking `next` for each live agent's intent in agent-id
@@ -357,7 +393,15 @@ impl World {
     /// step, REFERENCE §1.8, §9.3). `None` counts as a missing intent.
     pub fn resolve_by<I: std::borrow::Borrow<Intent>>(
         &mut self,
+        next: impl FnMut(&World, AgentId) -> Option<I>,
+    ) -> StepReport {
+        self.resolve_each(next, |_| None)
+    }
+
+    fn resolve_each<I: std::borrow::Borrow<Intent>>(
+        &mut self,
         mut next: impl FnMut(&World, AgentId) -> Option<I>,
+        hint: impl Fn(AgentId) -> Option<MoveHint>,
     ) -> StepReport {
         let mut rep = StepReport { step: self.step, ..Default::default() };
         let mut lt = Vec::new();
@@ -375,7 +419,7 @@ impl World {
                 rep.rejected += 1;
                 continue;
             }
-            match self.apply(intent) {
+            match self.apply_hinted(intent, hint(id)) {
                 Ok(n) => rep.rejected += n,
                 Err(_) => rep.rejected += 1,
             }
@@ -423,6 +467,11 @@ impl World {
     /// Apply one intent; returns how many of its ops were refused. An error refuses the
     /// whole intent.
     pub fn apply(&mut self, intent: &Intent) -> Result<u32, Rejection> {
+        self.apply_hinted(intent, None)
+    }
+
+    /// [`World::apply`], with the outcome of the intent's first move if known.
+    fn apply_hinted(&mut self, intent: &Intent, hint: Option<MoveHint>) -> Result<u32, Rejection> {
         if intent.step != self.step {
             return Err(Rejection::WrongStep { got: intent.step, expected: self.step });
         }
@@ -440,9 +489,9 @@ impl World {
         // that name the item it saw mean the item it holds (issue 30). Multi-action
         // trees only: a one-action tree has no op after its pick.
         let mut swapped: Option<(ObjectId, ObjectId)> = None;
-        for op in &intent.ops {
+        for (k, op) in intent.ops.iter().enumerate() {
             let r = match *op {
-                Op::Move { to, heading } => self.apply_move(id, to, heading),
+                Op::Move { to, heading } => self.apply_move(id, to, heading, hint.filter(|_| k == 0)),
                 Op::Pick { object } => self.apply_pick(id, object).map(|got| {
                     if got != object {
                         swapped = Some((object, got));
@@ -475,13 +524,19 @@ impl World {
         self.bodies[id as usize].carrying.iter().map(|&o| &self.objects[o as usize].info)
     }
 
-    fn apply_move(&mut self, id: AgentId, to: Pos, heading: f64) -> Result<(), Rejection> {
+    fn apply_move(&mut self, id: AgentId, to: Pos, heading: f64, hint: Option<MoveHint>) -> Result<(), Rejection> {
         if !heading.is_finite() {
             return Err(Rejection::BadHeading);
         }
         let from = self.bodies[id as usize].pos;
-        let (dest, new_heading) =
-            rules::destination(&self.geom, from, heading, rules::carried_weight(self.carried(id)));
+        let weight = rules::carried_weight(self.carried(id));
+        // A hint counts only if it was computed from these very inputs.
+        let (dest, new_heading) = match hint {
+            Some(h) if h.from == from && h.heading.to_bits() == heading.to_bits() && h.weight == weight => {
+                (h.dest, h.new_heading)
+            }
+            _ => rules::destination(&self.geom, from, heading, weight),
+        };
         if dest != to {
             return Err(Rejection::BadMove { to, heading });
         }
@@ -896,6 +951,44 @@ mod tests {
         assert_eq!(rep.rejected, 1);
         assert_eq!(w.bodies()[0].pos, Pos::new(2, 0));
         assert_eq!(w.bodies()[1].pos, Pos::new(0, 0));
+    }
+
+    /// A hint is what applying the move computes: resolving with hints gives what
+    /// resolving without them gives; a hint only counts for the inputs it was computed
+    /// from (here another agent's, whose body stands elsewhere), and only for a first op.
+    #[test]
+    fn move_hints_change_nothing_and_count_only_for_their_inputs() {
+        let setup = || {
+            let mut w = world(Task::Foraging, 3);
+            w.place_agent(0, Pos::new(0, 0), 0.0);
+            w.place_agent(1, Pos::new(10, 4), 0.0);
+            w.place_agent(2, Pos::new(-6, 7), 0.0);
+            w
+        };
+        let (mut a, mut b) = (setup(), setup());
+        let intents: Vec<Option<Intent>> = [(0, 0.3), (1, 2.0), (2, 4.4)]
+            .iter()
+            .map(|&(id, h)| {
+                let body = &a.bodies()[id as usize];
+                let (to, _) = rules::destination(&a.geometry(), body.pos, h, 0);
+                let (twice, _) = rules::destination(&a.geometry(), to, h, 0);
+                Some(intent(&a, id, h, vec![Op::Move { to, heading: h }, Op::Move { to: twice, heading: h }]))
+            })
+            .collect();
+        let hints: Vec<Option<MoveHint>> = intents.iter().map(|i| i.as_ref().and_then(|i| b.move_hint(i))).collect();
+        assert!(hints.iter().all(Option::is_some));
+        let plain = a.resolve(&intents);
+        let hinted = b.resolve_hinted(&intents, &hints);
+        assert_eq!(plain, hinted);
+        assert_eq!(plain.rejected, 0);
+        let pos = |w: &World| w.bodies().iter().map(|b| (b.pos, b.heading.to_bits())).collect::<Vec<_>>();
+        assert_eq!(pos(&a), pos(&b));
+        // Agent 1's hint handed to agent 0 (other inputs) is ignored: the move is valid.
+        let (mut c, mut d) = (setup(), setup());
+        let mine = intents[0].clone();
+        let swapped = [hints[1], None, None];
+        assert_eq!(c.resolve(std::slice::from_ref(&mine)), d.resolve_hinted(&[mine], &swapped));
+        assert_eq!(pos(&c), pos(&d));
     }
 
     #[test]

@@ -29,6 +29,7 @@ use geese_agent::{FitnessCell, GeneCache, Learner, SharedGene};
 use geese_proto::membus::Mailboxes;
 use geese_proto::rules::for_each_gene_cell;
 use geese_proto::{CellIdx, GeneMsg, Geometry, Intent, Percept, Pos, StepReport};
+use geese_world::world::MoveHint;
 use geese_world::World;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -382,16 +383,26 @@ impl Trial {
             }
         }
         let genes = &*genes;
+        // Each worker also computes where its agents' first moves go, which the world
+        // would otherwise compute on the one thread that applies the intents.
+        let mut hints: Vec<Option<MoveHint>> = vec![None; agents.len()];
+        let frozen = &*world;
         Workers::each(
             &w.pool,
-            agents.chunks_mut(range).zip(intents.chunks_mut(range)).zip(cells.chunks(range)).zip(w.caches.iter_mut()),
-            |(((agents, slots), cells), cache)| {
-                for ((agent, slot), cell) in agents.iter_mut().zip(slots).zip(cells) {
+            agents
+                .chunks_mut(range)
+                .zip(intents.chunks_mut(range))
+                .zip(hints.chunks_mut(range))
+                .zip(cells.chunks(range))
+                .zip(w.caches.iter_mut()),
+            |((((agents, slots), hints), cells), cache)| {
+                for (((agent, slot), hint), cell) in agents.iter_mut().zip(slots).zip(hints).zip(cells) {
                     *slot = cell.map(|pi| agent.finish_step(genes.get(percepts[pi].cell), cache));
+                    *hint = slot.as_ref().and_then(|i| frozen.move_hint(i));
                 }
             },
         );
-        world.resolve(intents)
+        world.resolve_hinted(intents, &hints)
     }
 
     /// One step of agents taking turns in id order (REFERENCE §1.8, §9.3), with one
