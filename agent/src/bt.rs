@@ -105,6 +105,9 @@ pub enum BuildError {
 pub struct Bt {
     /// The shape, fixed once built (and shared by the copies of one gene's tree).
     nodes: Arc<[Node]>,
+    /// The Selector nodes, for the fitness's count of successful ones every tick
+    /// (scanning every node for them was ~0.7 % of a learning run); shared likewise.
+    selectors: Arc<[u32]>,
     status: Vec<Status>,
 }
 
@@ -158,7 +161,8 @@ impl Bt {
 
     /// A tree of these nodes, every status fresh.
     fn of(nodes: Vec<Node>) -> Bt {
-        Bt { status: vec![Status::Invalid; nodes.len()], nodes: nodes.into() }
+        let selectors = (0..nodes.len() as u32).filter(|&i| nodes[i as usize].kind == Kind::Selector).collect();
+        Bt { status: vec![Status::Invalid; nodes.len()], nodes: nodes.into(), selectors }
     }
 
     /// Compose several trees under one Parallel root (the fixed-agent "Parallel
@@ -183,7 +187,11 @@ impl Bt {
     /// The same tree with every status fresh, as [`Bt::from_pnode`] builds it; the
     /// nodes are shared.
     pub fn fresh(&self) -> Bt {
-        Bt { nodes: self.nodes.clone(), status: vec![Status::Invalid; self.nodes.len()] }
+        Bt {
+            nodes: self.nodes.clone(),
+            selectors: self.selectors.clone(),
+            status: vec![Status::Invalid; self.nodes.len()],
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -289,8 +297,7 @@ impl Bt {
     /// BT feedback of the reference code: the number of Selector nodes whose status is
     /// SUCCESS after the tick (stale statuses included).
     pub fn successful_selectors(&self) -> u32 {
-        self.nodes.iter().zip(&self.status).filter(|(n, s)| n.kind == Kind::Selector && **s == Status::Success).count()
-            as u32
+        self.selectors.iter().filter(|&&i| self.status[i as usize] == Status::Success).count() as u32
     }
 
     /// BT feedback as the paper defines it: +1 per successful post-condition, −2 per

@@ -270,8 +270,10 @@ fn probe(v: &mut View, kind: ObjectKind) -> bool {
     }
     let (c, s) = (v.heading.cos(), v.heading.sin());
     for d in 0..3 {
-        let p =
-            Pos::new((v.pos.x as f64 + d as f64 * c).trunc() as i32, (v.pos.y as f64 + d as f64 * s).trunc() as i32);
+        let p = Pos::new(
+            (v.pos().x as f64 + d as f64 * c).trunc() as i32,
+            (v.pos().y as f64 + d as f64 * s).trunc() as i32,
+        );
         let (p, _) = v.geom.reflect(p, v.heading);
         let cell = v.geom.cell_of(p);
         if let Some(o) = v.impassable.iter().find(|o| o.kind == kind && v.registered_in(o, cell)) {
@@ -294,7 +296,7 @@ fn avoid(v: &mut View, kind: ObjectKind) -> bool {
     let Some(o) = v.find(kind).first().copied() else {
         return true;
     };
-    let a = (v.pos.x as f64, v.pos.y as f64);
+    let a = (v.pos().x as f64, v.pos().y as f64);
     let b = ((a.0 + 3.0 * v.heading.cos()).ceil(), (a.1 + 3.0 * v.heading.sin()).ceil());
     let (x1, y1, x2, y2) = v.geom.neighbourhood_box(o.pos, o.radius);
     let (x1, y1, x2, y2) = (x1 as f64, y1 as f64, x2 as f64, y2 as f64);
@@ -347,7 +349,7 @@ fn goto<R: Rng>(v: &mut View, rng: &mut R, kind: ObjectKind) -> bool {
         return false;
     }
     let t = targets[rng.random_range(0..targets.len())].pos;
-    v.heading = ((t.y - v.pos.y) as f64).atan2((t.x - v.pos.x) as f64).rem_euclid(TAU);
+    v.heading = ((t.y - v.pos().y) as f64).atan2((t.x - v.pos().x) as f64).rem_euclid(TAU);
     true
 }
 
@@ -388,7 +390,7 @@ fn random_walk<R: Rng>(v: &mut View, rng: &mut R) -> bool {
 /// DidAvoidedObj: SUCCESS unless the agent is heading towards the object.
 fn did_avoided(v: &View, k: ObjectKind) -> bool {
     let Some(o) = v.find(k).first() else { return true };
-    let alpha = ((v.pos.y - o.pos.y) as f64).atan2((v.pos.x - o.pos.x) as f64);
+    let alpha = ((v.pos().y - o.pos.y) as f64).atan2((v.pos().x - o.pos.x) as f64);
     (v.heading - alpha).abs() >= FRAC_PI_2
 }
 

@@ -59,7 +59,11 @@ impl KindMap {
 pub struct View {
     pub geom: Geometry,
     pub id: AgentId,
-    pub pos: Pos,
+    /// Where the agent stands ([`View::pos`]), and its cell: set together, by the
+    /// percept and by moves (the cell was computed afresh at every look-up, a few times
+    /// each tick).
+    pos: Pos,
+    here: CellIdx,
     pub heading: f64,
     pub carrying: Vec<ObjectInfo>,
     /// The cell whose objects are known (the one the percept describes).
@@ -93,6 +97,7 @@ impl View {
             geom,
             id,
             pos: Pos::default(),
+            here: geom.cell_of(Pos::default()),
             heading: 0.0,
             carrying: Vec::new(),
             known_cell: 0,
@@ -113,7 +118,7 @@ impl View {
         let Some(me) = p.agents.iter().find(|a| a.id == self.id) else {
             return false;
         };
-        self.pos = me.pos;
+        self.set_pos(me.pos);
         self.heading = me.heading;
         self.carrying.clear();
         self.carrying.extend_from_slice(&me.carrying);
@@ -131,8 +136,19 @@ impl View {
         true
     }
 
+    /// Where the agent stands.
+    pub fn pos(&self) -> Pos {
+        self.pos
+    }
+
+    /// The cell the agent stands in.
     pub fn cell(&self) -> CellIdx {
-        self.geom.cell_of(self.pos)
+        self.here
+    }
+
+    fn set_pos(&mut self, p: Pos) {
+        self.pos = p;
+        self.here = self.geom.cell_of(p);
     }
 
     /// Is `o` registered in `cell` (its neighbourhood covers the cell)?
@@ -191,6 +207,7 @@ impl View {
             return false;
         }
         self.pos = dest;
+        self.here = new_c;
         self.heading = h;
         self.ops.push(Op::Move { to: dest, heading: before });
         true

@@ -225,7 +225,7 @@ fn move_towards_at_the_item_does_nothing() {
         let mut v = at_hub().heading(1.0).view();
         assert!(tick(text, &mut v), "{text}");
         assert!(v.ops.is_empty(), "{text}");
-        assert_eq!((v.pos, v.heading), (Pos::new(3, 3), 1.0), "{text}");
+        assert_eq!((v.pos(), v.heading), (Pos::new(3, 3), 1.0), "{text}");
     }
 }
 
@@ -237,15 +237,15 @@ fn move_towards_steps_to_a_known_item() {
         let mut v = World::at(30, 0).heading(1.0).view();
         assert!(tick(text, &mut v), "{text}");
         assert_eq!(v.ops, [Op::Move { to: Pos::new(28, 0), heading: PI }], "{text}");
-        assert_eq!((v.pos, v.heading), (Pos::new(28, 0), PI), "{text}");
+        assert_eq!((v.pos(), v.heading), (Pos::new(28, 0), PI), "{text}");
         let mut v = World::at(30, 0).carrying(food(10)).view();
         assert!(tick(text, &mut v), "{text}, carrying");
-        assert_eq!(v.pos, Pos::new(29, 0), "{text}: one unit while carrying");
+        assert_eq!(v.pos(), Pos::new(29, 0), "{text}: one unit while carrying");
         // Sites never sensed: GoTo finds nothing.
         let mut v = World::at(30, 0).heading(1.0).view();
         assert!(!tick(&text.replace("Hub", "Sites"), &mut v), "{text} → Sites");
         assert!(v.ops.is_empty());
-        assert_eq!((v.pos, v.heading), (Pos::new(30, 0), 1.0));
+        assert_eq!((v.pos(), v.heading), (Pos::new(30, 0), 1.0));
     }
 }
 
@@ -278,7 +278,7 @@ fn move_towards_normal_is_stopped_by_an_obstacle() {
     let mut v = World::at(31, 5).near(obstacle()).view();
     assert!(!tick("MoveTowards_Hub_Normal", &mut v));
     assert!(v.ops.is_empty());
-    assert_eq!(v.pos, Pos::new(31, 5));
+    assert_eq!(v.pos(), Pos::new(31, 5));
 }
 
 /// §2.5 MoveTowards [Avoid] + §2.3 NeighbourObjectsDist + §2.4 AvoidSObjects: an
@@ -336,7 +336,7 @@ fn explore_normal_turns_a_little_and_steps() {
         assert!(wrap(h).abs() < 0.5, "a turn of {h} rad is not N(0, 0.1²)");
         let to = Pos::new(round_half_even(35.0 + 2.0 * h.cos()), round_half_even(35.0 + 2.0 * h.sin()));
         assert_eq!(v.ops, [Op::Move { to, heading: h }]);
-        assert_eq!(v.pos, to);
+        assert_eq!(v.pos(), to);
     }
 }
 
@@ -365,7 +365,7 @@ fn explore_normal_is_blocked_and_explore_avoid_goes_around() {
     let mut v = World::at(31, 5).heading(PI).near(obstacle()).view();
     assert!(!tick("Explore_0_Normal", &mut v));
     assert!(v.ops.is_empty());
-    assert_eq!(v.pos, Pos::new(31, 5));
+    assert_eq!(v.pos(), Pos::new(31, 5));
     for text in ["Explore_0_Avoid", "Explore"] {
         let mut v = World::at(31, 5).heading(PI).near(obstacle()).view();
         assert!(tick(text, &mut v), "{text}");
@@ -547,13 +547,13 @@ fn sensing_after_a_move_in_the_same_tick_sees_the_cell_moved_into() {
     // The site's cell holds the site and food 10; the agent's own cell is empty.
     let mut v = World::at(-19, -25).knowing(site()).around(site()).around(food(10)).view();
     assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Success);
-    assert_eq!(v.pos, Pos::new(-21, -26), "the move into the site's cell happens");
+    assert_eq!(v.pos(), Pos::new(-21, -26), "the move into the site's cell happens");
     assert_eq!(v.ops.last(), Some(&Op::Pick { object: 10 }), "and the food there is picked");
     // Reach 0: only the start cell is known.
     let mut bt = Bt::from_pnode(&p).expect("tree");
     let mut v = World::at(-19, -25).knowing(site()).view();
     assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Failure);
-    assert_eq!(v.pos, Pos::new(-21, -26));
+    assert_eq!(v.pos(), Pos::new(-21, -26));
     assert!(!v.ops.contains(&Op::Pick { object: 10 }), "the food there is not seen");
 }
 
@@ -574,8 +574,8 @@ fn drops_and_picks_after_a_move_use_the_cell_moved_into() {
     // (9, 5), in the hub's cell.
     let mut v = World::at(10, 5).carrying(food(10)).around(HUB).view();
     assert_eq!(bt.tick(&mut v, &mut bt_rng(ME)), Status::Success);
-    assert_eq!(v.pos, Pos::new(9, 5));
-    assert_eq!(v.pos, Pos::new(9, 5));
+    assert_eq!(v.pos(), Pos::new(9, 5));
+    assert_eq!(v.pos(), Pos::new(9, 5));
     assert_eq!(v.ops.last(), Some(&Op::Drop { object: 10 }));
     assert_eq!(v.delivered, 5, "into the hub: the task reward F counts it");
     assert!(v.area.iter().all(|o| o.id != 10), "delivered, not lying in the area");
