@@ -731,6 +731,8 @@ fn map_crossed<R: Rng + ?Sized, M: Member>(
         next = gaps.next_from(rng, next + 1);
     }
     if let (Some(g), true) = (shared, fits && m.stats.valid) {
+        derivations.runs.clear();
+        tape.phenotype_runs(m.runs, &mut derivations.runs);
         derivations.keep(g, env.grammar.uid().0, env.limits, m.stats, m.d);
     }
     let resume = m.mark.map(Origin::Mark);
@@ -962,10 +964,10 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
             let genome: Arc<[u32]> = Arc::from(&arena[kid.start..kid.start + kid.len]);
             if st.valid {
                 // Only the winner's phenotype is ever written out: its parent's when it
-                // derives like it (known to the parent, or to the parent's kept
-                // derivation once mapped), else the text of the runs its mapping on the
-                // tape wrote (one held already when a winner wrote the same runs), else
-                // mapped.
+                // derives like it (known to the parent, or written from the runs of the
+                // parent's kept derivation), else the text of the runs its mapping on
+                // the tape wrote (either held already when a winner wrote the same
+                // runs), else mapped.
                 let kept = known.and_then(|k| derivations.by_key(k));
                 let phenotype = match (same_as.and_then(|p| pool[p].phenotype()), runs, kept) {
                     (Some(p), _, _) => {
@@ -977,14 +979,16 @@ pub fn genetic_step_on<R: Rng + ?Sized, M: Member>(
                         stats.winner_phenotype_inherited = true;
                         Arc::clone(p)
                     }
-                    (None, None, kept) => {
+                    (None, None, Some(d)) => {
+                        stats.winner_phenotype_inherited = true;
+                        let text = phenotypes.text(grammar, |key| key.extend_from_slice(&d.runs));
+                        d.phenotype = Some(Arc::clone(&text));
+                        text
+                    }
+                    (None, None, None) => {
                         let mut text = String::with_capacity(256);
                         mapper.map_into(grammar, &genome, limits, &mut text);
-                        let text: Arc<str> = Arc::from(text);
-                        if let Some(d) = kept {
-                            d.phenotype = Some(Arc::clone(&text));
-                        }
-                        text
+                        Arc::from(text)
                     }
                 };
                 Individual {
