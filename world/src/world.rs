@@ -274,10 +274,42 @@ impl World {
     /// The cells a live agent is in, ascending: those [`World::percepts`] describes, for
     /// a caller that builds their percepts on several threads.
     pub fn occupied_cells(&self) -> Vec<CellIdx> {
-        let mut cells: Vec<CellIdx> = self.bodies.iter().filter(|b| b.live).map(|b| self.geom.cell_of(b.pos)).collect();
-        cells.sort_unstable();
-        cells.dedup();
+        let mut cells = Vec::new();
+        self.occupied_cells_into(self.bodies.iter().map(|b| self.body_cell(b)), &mut Vec::new(), &mut cells);
         cells
+    }
+
+    /// The cell of a body, if it is live (what [`World::occupied_cells_into`] is given).
+    pub fn body_cell(&self, b: &Body) -> Option<CellIdx> {
+        b.live.then(|| self.geom.cell_of(b.pos))
+    }
+
+    /// [`World::occupied_cells`] into `out`, from the cells of the bodies computed by
+    /// the caller (a trial computes them on its worker threads), with `seen` as scratch
+    /// (both kept by a caller that asks every step): each cell once, ascending. Read
+    /// off a map of the arena's cells where it has at most 16 per occupied one (sorting
+    /// 10,000 cells was a sixth of a sparse step's one-thread part), else sorted.
+    pub fn occupied_cells_into(
+        &self,
+        cells: impl IntoIterator<Item = Option<CellIdx>>,
+        seen: &mut Vec<bool>,
+        out: &mut Vec<CellIdx>,
+    ) {
+        out.clear();
+        out.extend(cells.into_iter().flatten());
+        let count = self.geom.cell_count();
+        if count <= 16 * out.len() {
+            seen.clear();
+            seen.resize(count, false);
+            for &c in out.iter() {
+                seen[c as usize] = true;
+            }
+            out.clear();
+            out.extend((0..count as CellIdx).filter(|&c| seen[c as usize]));
+        } else {
+            out.sort_unstable();
+            out.dedup();
+        }
     }
 
     /// The bodies of the agents registered in `cell`, in registration order.
@@ -951,6 +983,24 @@ mod tests {
         assert_eq!(rep.rejected, 1);
         assert_eq!(w.bodies()[0].pos, Pos::new(2, 0));
         assert_eq!(w.bodies()[1].pos, Pos::new(0, 0));
+    }
+
+    /// Occupied cells come out ascending and each once, whether read off the map of
+    /// the arena's cells (many agents) or sorted (few), dead bodies (`None`) left out.
+    #[test]
+    fn occupied_cells_are_ascending_and_unique_either_way() {
+        let w = world(Task::Foraging, 1);
+        let count = w.geometry().cell_count() as CellIdx;
+        let (mut seen, mut out) = (Vec::new(), Vec::new());
+        let few = [Some(7), None, Some(3), Some(7)];
+        w.occupied_cells_into(few, &mut seen, &mut out);
+        assert_eq!(out, [3, 7]);
+        let many: Vec<Option<CellIdx>> = (0..count).rev().map(|c| (c % 3 != 0).then_some(c / 2)).collect();
+        w.occupied_cells_into(many.iter().copied(), &mut seen, &mut out);
+        let mut want: Vec<CellIdx> = many.iter().flatten().copied().collect();
+        want.sort_unstable();
+        want.dedup();
+        assert_eq!(out, want);
     }
 
     /// A hint is what applying the move computes: resolving with hints gives what

@@ -160,35 +160,22 @@ struct Reading {
     slot: Vec<u32>,
     /// The cells with a percept, ascending.
     cells: Vec<CellIdx>,
+    /// Scratch for finding them ([`World::occupied_cells_into`]).
+    seen: Vec<bool>,
 }
 
 impl Reading {
     const NONE: u32 = u32::MAX;
 
-    /// Read the percepts of the cells of the live agents (`of_body`, by agent id; `None`
-    /// for a dead one), in an arena of `cell_count` cells: their cells, ascending, each
-    /// once (what [`World::occupied_cells`] gives).
-    fn start(&mut self, cell_count: usize, of_body: &[Option<CellIdx>]) -> &[CellIdx] {
+    /// Read the percepts of the cells of the live agents of `world` (`of_body`, the cell
+    /// of each body, [`World::body_cell`]): their cells, ascending, each once.
+    fn start(&mut self, world: &World, of_body: &[Option<CellIdx>]) -> &[CellIdx] {
         self.end();
+        let cell_count = world.geometry().cell_count();
         if self.slot.len() != cell_count {
             self.slot = vec![Self::NONE; cell_count];
         }
-        // Each occupied cell once (its slot marked), then ascending: read off the marks
-        // where the arena has not many more cells than agents (sorting 10,000 cells
-        // took a sixth of a sparse step's sequential part), else sorted.
-        for &c in of_body.iter().flatten() {
-            let s = &mut self.slot[c as usize];
-            if *s == Self::NONE {
-                *s = 0;
-                self.cells.push(c);
-            }
-        }
-        if cell_count <= 16 * self.cells.len() {
-            self.cells.clear();
-            self.cells.extend((0..cell_count as CellIdx).filter(|&c| self.slot[c as usize] != Self::NONE));
-        } else {
-            self.cells.sort_unstable();
-        }
+        world.occupied_cells_into(of_body.iter().copied(), &mut self.seen, &mut self.cells);
         for (i, &c) in self.cells.iter().enumerate() {
             self.slot[c as usize] = i as u32;
         }
@@ -319,11 +306,9 @@ impl Trial {
             return self.parallel_lock_step();
         }
         let geom = self.world.geometry();
-        let of_body: Vec<Option<CellIdx>> =
-            self.world.bodies().iter().map(|b| b.live.then(|| geom.cell_of(b.pos))).collect();
         let world = &self.world;
-        let percepts: Vec<Percept> =
-            self.reading.start(geom.cell_count(), &of_body).iter().map(|&c| world.percept(c)).collect();
+        let of_body: Vec<Option<CellIdx>> = world.bodies().iter().map(|b| world.body_cell(b)).collect();
+        let percepts: Vec<Percept> = self.reading.start(world, &of_body).iter().map(|&c| world.percept(c)).collect();
         self.genes.clear();
         let cells = percept_of_each(&self.reading, &of_body);
         for ((agent, cell), body) in self.agents.iter_mut().zip(&cells).zip(self.world.bodies()) {
@@ -357,8 +342,8 @@ impl Trial {
         let Some(w) = workers else { unreachable!("parallel_lock_step runs only with workers") };
         let geom = world.geometry();
         let of_body: Vec<Option<CellIdx>> =
-            w.pool.install(|| world.bodies().par_iter().map(|b| b.live.then(|| geom.cell_of(b.pos))).collect());
-        let occupied = reading.start(geom.cell_count(), &of_body);
+            w.pool.install(|| world.bodies().par_iter().map(|b| world.body_cell(b)).collect());
+        let occupied = reading.start(world, &of_body);
         let percepts: Vec<Percept> = w.pool.install(|| occupied.par_iter().map(|&c| world.percept(c)).collect());
         genes.clear();
         let reading = &*reading;
