@@ -31,9 +31,11 @@ pub type CellIdx = u32;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(try_from = "GeometryFields")]
 pub struct Geometry {
-    pub width: i32,
-    pub height: i32,
-    pub grid: i32,
+    /// Read through [`Geometry::width`], [`Geometry::height`] and [`Geometry::grid`]:
+    /// the fields below are derived from them.
+    width: i32,
+    height: i32,
+    grid: i32,
     /// Derived in [`Geometry::new`] (not encoded): every agent and object look-up of
     /// every step divides by the grid and by the number of columns, and a multiply by
     /// a precomputed reciprocal ([`Divisor`]) costs a fraction of a division.
@@ -147,6 +149,21 @@ impl Geometry {
         }
     }
 
+    /// Arena width.
+    #[inline]
+    pub fn width(&self) -> i32 {
+        self.width
+    }
+    /// Arena height.
+    #[inline]
+    pub fn height(&self) -> i32 {
+        self.height
+    }
+    /// Grid size (side of a cell).
+    #[inline]
+    pub fn grid(&self) -> i32 {
+        self.grid
+    }
     #[inline]
     pub fn half_w(&self) -> i32 {
         self.width / 2

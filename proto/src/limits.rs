@@ -30,7 +30,7 @@ pub const MAX_SCHEDULED: usize = 10_000;
 /// Largest obstacle radius in an arena: its width or height, whichever is larger (an
 /// obstacle that large already covers every cell).
 pub fn max_radius(geom: &Geometry) -> i32 {
-    geom.width.max(geom.height)
+    geom.width().max(geom.height())
 }
 
 /// A control command or value outside its limits. The message names the field and the
@@ -109,7 +109,7 @@ impl Perturbation {
                     return Err(InvalidCommand::new(
                         "AddObstacles.radius",
                         radius,
-                        format!("exceeds {max} (the arena is {}x{})", geom.width, geom.height),
+                        format!("exceeds {max} (the arena is {}x{})", geom.width(), geom.height()),
                     ));
                 }
                 Ok(())
@@ -126,7 +126,7 @@ impl Perturbation {
                     return Err(InvalidCommand::new(
                         "AddObstacleAt",
                         format!("({x}, {y})"),
-                        format!("is outside the {}x{} arena", geom.width, geom.height),
+                        format!("is outside the {}x{} arena", geom.width(), geom.height()),
                     ));
                 }
                 Ok(())

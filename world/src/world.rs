@@ -323,7 +323,7 @@ impl World {
         let objects: Vec<ObjectInfo> = self.objects_in(cell).copied().collect();
         // Impassable objects a move or probe from this cell can meet: cells within
         // ceil(3 / GS) columns and rows (at least one).
-        let reach = ((AGENT_RADIUS + self.geom.grid - 1) / self.geom.grid).max(1);
+        let reach = ((AGENT_RADIUS + self.geom.grid() - 1) / self.geom.grid()).max(1);
         let mut nearby_impassable: Vec<ObjectInfo> = Vec::new();
         for idx in self.cells_around(cell, reach) {
             for o in self.objects_in(idx) {
@@ -576,7 +576,7 @@ impl World {
         if old_c != new_c && self.cell_blocked(new_c) {
             return Err(Rejection::Blocked);
         }
-        if old_c != new_c || AGENT_RADIUS > self.geom.grid {
+        if old_c != new_c || AGENT_RADIUS > self.geom.grid() {
             self.deregister_agent(id);
             self.bodies[id as usize].pos = dest;
             self.register_agent(id);
