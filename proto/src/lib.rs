@@ -14,7 +14,6 @@
 //! - [`limits`]: limits on what crosses a trust boundary, and the checks of control
 //!   commands against them.
 //! - [`codec`]: the versioned envelope and its decode errors.
-//! - [`membus`]: the in-memory transport.
 //! - [`seed`]: named random streams and portable digests.
 //! - [`net`]: the extra messages of the distributed runtime (ticks, batches, run info).
 //! - [`view`]: the frames and agent details the live viewer shows.
@@ -26,7 +25,6 @@ pub mod codec;
 pub mod geometry;
 pub mod keys;
 pub mod limits;
-pub mod membus;
 pub mod message;
 pub mod net;
 pub mod rules;
