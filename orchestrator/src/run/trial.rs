@@ -17,7 +17,7 @@
 //! percepts and genes with its own random streams, the genes offered are gathered by
 //! cell in agent-id order once every agent has offered, each worker thread keeps its own
 //! [`GeneCache`] (scratch buffers and a memo, so which thread ran an agent changes
-//! nothing) and always steps the same range of agents, and the world applies the
+//! nothing) and mostly steps the same range of agents, and the world applies the
 //! intents in agent-id order as before. The trajectory is therefore the same for every
 //! thread count.
 //!
@@ -199,16 +199,22 @@ impl Reading {
 
 /// A thread pool for the decide phase, with one [`GeneCache`] per pool thread.
 ///
-/// Each pool thread always steps the same contiguous range of agents
-/// ([`Workers::each`]), so an agent's learner, pool and tree stay in one core's caches
-/// from step to step. (Measured, it changes little: 10,000 sparse agents run 1.3 times
-/// as fast on 2 threads as on 1 either way; docs/PERFORMANCE.md says where the rest
-/// goes.)
+/// Each pool thread steps the same contiguous range of agents in every phase
+/// ([`Workers::share`]), so what one phase writes of an agent the next reads from the
+/// same core's caches (handing agents to whichever thread was free made 10,000 sparse
+/// agents 2–5 % slower). A thread that has finished its range then takes runs of
+/// [`AGENTS_PER_TASK`] agents from the end of the others': an agent's step costs a
+/// genetic step or not, and with fixed halves the slower half of 10,000 sparse agents
+/// took 4.6 % longer every step while the other thread waited.
 struct Workers {
     pool: rayon::ThreadPool,
-    /// By pool thread index.
-    caches: Vec<GeneCache>,
+    /// By pool thread index; a thread locks only its own.
+    caches: Vec<Mutex<GeneCache>>,
 }
+
+/// Agents stepped as one task of the decide phase: enough to make a task's overhead
+/// small, few enough that the threads finish the phase together.
+const AGENTS_PER_TASK: usize = 64;
 
 impl Workers {
     fn new(threads: usize) -> Result<Workers, SetupError> {
@@ -217,16 +223,43 @@ impl Workers {
             .thread_name(|i| format!("geese-trial-{i}"))
             .build()
             .map_err(|e| SetupError::Threads(format!("cannot start {threads} threads: {e}")))?;
-        Ok(Workers { pool, caches: (0..threads).map(|_| GeneCache::new()).collect() })
+        Ok(Workers { pool, caches: (0..threads).map(|_| Mutex::new(GeneCache::new())).collect() })
     }
 
     fn threads(&self) -> usize {
         self.caches.len()
     }
 
-    /// Agents per thread: the agents split into one contiguous range per thread.
-    fn range(&self, agents: usize) -> usize {
-        agents.div_ceil(self.threads()).max(1)
+    /// Run `f` on every task of `tasks` once, on the pool threads, with the
+    /// [`GeneCache`] of the thread that runs it. The tasks are split into one
+    /// contiguous block per thread; a thread runs its own block from the front, then
+    /// takes the tasks left in the other blocks from their ends.
+    fn share<T: Send>(&self, tasks: impl IntoIterator<Item = T>, f: impl Fn(T, &mut GeneCache) + Sync) {
+        let slots: Vec<Mutex<Option<T>>> = tasks.into_iter().map(|t| Mutex::new(Some(t))).collect();
+        let block = slots.len().div_ceil(self.threads()).max(1);
+        let blocks: Vec<&[Mutex<Option<T>>]> = slots.chunks(block).collect();
+        let take = |s: &Mutex<Option<T>>| s.lock().unwrap_or_else(|e| e.into_inner()).take();
+        self.pool.broadcast(|ctx| {
+            let me = ctx.index();
+            let mut cache = self.caches[me % self.caches.len()].lock().unwrap_or_else(|e| e.into_inner());
+            let own = blocks.get(me).copied().unwrap_or_default();
+            for s in own {
+                if let Some(t) = take(s) {
+                    f(t, &mut cache);
+                }
+            }
+            for (k, other) in blocks.iter().enumerate() {
+                if k != me {
+                    for s in other.iter().rev() {
+                        match take(s) {
+                            Some(t) => f(t, &mut cache),
+                            // Its owner has reached it: the rest of the block is done.
+                            None => break,
+                        }
+                    }
+                }
+            }
+        });
     }
 
     /// Run `f` once on every pool thread, thread `i` with `parts[i]` (a part per thread
@@ -343,12 +376,11 @@ impl Trial {
         let reading = &*reading;
         let cells: Vec<Option<usize>> =
             w.pool.install(|| of_body.par_iter().map(|c| c.and_then(|c| reading.percept(c))).collect());
-        let range = w.range(agents.len());
+        let n = AGENTS_PER_TASK;
         let percepts = &percepts;
-        Workers::each(
-            &w.pool,
-            agents.chunks_mut(range).zip(offered.chunks_mut(range)).zip(cells.chunks(range)),
-            |((agents, offers), cells)| {
+        w.share(
+            agents.chunks_mut(n).zip(offered.chunks_mut(n)).zip(cells.chunks(n)),
+            |((agents, offers), cells), _| {
                 for ((agent, offer), cell) in agents.iter_mut().zip(offers).zip(cells) {
                     *offer = cell.and_then(|pi| agent.begin_step(&percepts[pi]));
                 }
@@ -367,15 +399,9 @@ impl Trial {
         // would otherwise compute on the one thread that applies the intents.
         let mut hints: Vec<Option<MoveHint>> = vec![None; agents.len()];
         let frozen = &*world;
-        Workers::each(
-            &w.pool,
-            agents
-                .chunks_mut(range)
-                .zip(intents.chunks_mut(range))
-                .zip(hints.chunks_mut(range))
-                .zip(cells.chunks(range))
-                .zip(w.caches.iter_mut()),
-            |((((agents, slots), hints), cells), cache)| {
+        w.share(
+            agents.chunks_mut(n).zip(intents.chunks_mut(n)).zip(hints.chunks_mut(n)).zip(cells.chunks(n)),
+            |(((agents, slots), hints), cells), cache| {
                 for (((agent, slot), hint), cell) in agents.iter_mut().zip(slots).zip(hints).zip(cells) {
                     *slot = cell.map(|pi| agent.finish_step(mates[pi / per].of(pi % per), cache));
                     *hint = slot.as_ref().and_then(|i| frozen.move_hint(i));
