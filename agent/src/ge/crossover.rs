@@ -153,6 +153,11 @@ impl PairSampler {
     }
 
     /// The ordered pair (i, j) and its survival probabilities.
+    ///
+    /// `#[inline]`: the rejection loop of [`PairSampler::draw`] weighs ~5 pairs per
+    /// draw and reads only the weight of all but the last; called out of line, the whole
+    /// `Pair` went through memory every time.
+    #[inline]
     fn weigh(&self, i: usize, j: usize) -> Pair {
         let max = self.max_len as i64;
         let ((l0, u0), (l1, u1)) = (self.lens[i], self.lens[j]);

@@ -188,6 +188,12 @@ impl Reading {
         self.slot.get(cell as usize).filter(|&&i| i != Self::NONE).map(|&i| i as usize)
     }
 
+    /// The index of the percept a body in `cell` reads (`None` for a dead agent): one
+    /// rule for the one-thread and the parallel step.
+    fn percept_of_body(&self, cell: Option<CellIdx>) -> Option<usize> {
+        cell.and_then(|c| self.percept(c))
+    }
+
     /// Forget the step's percepts.
     fn end(&mut self) {
         for &c in &self.cells {
@@ -375,7 +381,7 @@ impl Trial {
         let percepts: Vec<Percept> = w.pool.install(|| occupied.par_iter().map(|&c| world.percept(c)).collect());
         let reading = &*reading;
         let cells: Vec<Option<usize>> =
-            w.pool.install(|| of_body.par_iter().map(|c| c.and_then(|c| reading.percept(c))).collect());
+            w.pool.install(|| of_body.par_iter().map(|&c| reading.percept_of_body(c)).collect());
         let n = AGENTS_PER_TASK;
         let percepts = &percepts;
         w.share(
@@ -464,7 +470,7 @@ impl Trial {
 /// Which percept each agent reads, by agent id: the index among the step's percepts
 /// of the cell its body is in (`of_body`); `None` for a dead agent.
 fn percept_of_each(reading: &Reading, of_body: &[Option<CellIdx>]) -> Vec<Option<usize>> {
-    of_body.iter().map(|c| c.and_then(|c| reading.percept(c))).collect()
+    of_body.iter().map(|&c| reading.percept_of_body(c)).collect()
 }
 
 /// [`Learner::finish_step`] with the cell-mates' genes as shared gene objects: each
