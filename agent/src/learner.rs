@@ -24,7 +24,7 @@ use crate::view::View;
 use geese_proto::seed::{derive, Fnv64, Owner, Purpose};
 use geese_proto::{
     AgentId, AgentStats, BehaviourClass, CellIdx, GeneMapping, GeneMsg, GeneticTrigger, Geometry, Intent, ObjectInfo,
-    Op, Percept, Regime,
+    Percept, Regime,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -1148,14 +1148,17 @@ impl Learner {
         std::mem::swap(&mut self.view.blackboard, board);
     }
 
-    /// Hand back the ops buffer of an intent this learner made and the world has
-    /// applied, for its next intent: the view's buffer goes out with every intent, and
-    /// an in-process trial that drops it allocates a new one per agent per step
-    /// (~130,000 of the 200,000 agent-steps of `geese bench --steps 2000`).
-    pub fn reuse_ops(&mut self, mut ops: Vec<Op>) {
-        if self.view.ops.capacity() == 0 {
-            ops.clear();
-            self.view.ops = ops;
+    /// Hand back an intent this learner made and the world has applied (if any), so
+    /// that its ops buffer serves the next intent: the view's buffer goes out with
+    /// every intent, and an in-process trial that drops it allocates a new one per
+    /// agent per step (~130,000 of the 200,000 agent-steps of `geese bench --steps
+    /// 2000`).
+    pub fn reuse_ops(&mut self, applied: Option<Intent>) {
+        if let Some(Intent { mut ops, .. }) = applied {
+            if self.view.ops.capacity() == 0 {
+                ops.clear();
+                self.view.ops = ops;
+            }
         }
     }
 

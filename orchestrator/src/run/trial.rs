@@ -358,9 +358,7 @@ impl Trial {
         let fields: Option<Vec<_>> =
             self.shared_genes.then(|| self.agents.iter().map(|a| a.gene_cell().cloned()).collect());
         for ((agent, cell), slot) in self.agents.iter_mut().zip(&cells).zip(self.intents.iter_mut()) {
-            if let Some(applied) = slot.take() {
-                agent.reuse_ops(applied.ops);
-            }
+            agent.reuse_ops(slot.take());
             *slot = cell.map(|pi| {
                 let genes = mates.of(pi);
                 with_board(&mut self.board, agent, |a| match &fields {
@@ -412,9 +410,7 @@ impl Trial {
             agents.chunks_mut(n).zip(intents.chunks_mut(n)).zip(hints.chunks_mut(n)).zip(cells.chunks(n)),
             |(((agents, slots), hints), cells), cache| {
                 for (((agent, slot), hint), cell) in agents.iter_mut().zip(slots).zip(hints).zip(cells) {
-                    if let Some(applied) = slot.take() {
-                        agent.reuse_ops(applied.ops);
-                    }
+                    agent.reuse_ops(slot.take());
                     *slot = cell.map(|pi| agent.finish_step(mates[pi / per].of(pi % per), cache));
                     *hint = slot.as_ref().and_then(|i| frozen.move_hint(i));
                 }
